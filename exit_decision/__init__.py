@@ -1,0 +1,1 @@
+"""exit_decision: graph RL highway-exit decisions for CAVs (SUMO + ROS 2)."""

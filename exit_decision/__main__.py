@@ -1,0 +1,1 @@
+from exit_decision.cli import main; raise SystemExit(main())

@@ -1,0 +1,285 @@
+"""YAML configuration: schemas, loading and validation with errors that name the bad key.
+
+Every file under ``config/`` has a pydantic schema here. Unknown keys are refused (a typo
+must not silently fall back to a default) and every error names the file and the key path.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+Probability = Annotated[float, Field(ge=0, le=1)]
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, unreadable or invalid; the message says where."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra='forbid', frozen=True)
+
+
+# --- scenario ---------------------------------------------------------------------------
+
+class RoadConfig(Strict):
+    lane_count: Annotated[int, Field(ge=1, le=6)]
+    highway_lengths: Annotated[tuple[PositiveFloat, PositiveFloat, PositiveFloat],
+                               Field(description='Highway_0, Highway_1, Highway_2 [m]')]
+    ramp_length: PositiveFloat
+    highway_speed_limit: PositiveFloat
+    ramp_speed_limit: PositiveFloat
+    diverge_commit_distance: PositiveFloat
+
+
+class CollisionConfig(Strict):
+    action: Literal['remove', 'warn', 'teleport', 'none']
+    mingap_factor: Annotated[float, Field(ge=0)]
+    check_junctions: bool
+
+
+class VehicleClassConfig(Strict):
+    count: Annotated[int, Field(ge=0)]
+    insertion_probability: Probability
+    depart_speed: Annotated[float, Field(ge=0)]
+    depart_lane: Literal['random'] | Annotated[int, Field(ge=0)]
+    right_change_clearance: Annotated[float, Field(ge=0)] | None = None
+
+
+class VehicleTypeConfig(Strict):
+    length: PositiveFloat
+    max_speed: PositiveFloat
+    accel: PositiveFloat
+    decel: PositiveFloat
+    emergency_decel: PositiveFloat
+    speed_factor: PositiveFloat
+    speed_dev: Annotated[float, Field(ge=0)]
+    politeness: Probability
+    car_following: Literal['IDM', 'Krauss', 'EIDM']
+
+
+VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
+
+
+class ScenarioConfig(Strict):
+    step_length: PositiveFloat
+    max_steps: Annotated[int, Field(gt=0)]
+    sumo_seed_offset: Annotated[int, Field(ge=0)]
+    road: RoadConfig
+    collision: CollisionConfig
+    vehicle_classes: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleClassConfig]
+    vehicle_types: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleTypeConfig]
+    emergency_braking_threshold: Annotated[float, Field(lt=0)]
+
+    @model_validator(mode='after')
+    def _every_class_defined(self) -> ScenarioConfig:
+        for section in ('vehicle_classes', 'vehicle_types'):
+            missing = [c for c in VEHICLE_CLASSES if c not in getattr(self, section)]
+            if missing:
+                raise ValueError(f'{section}: missing classes {missing}')
+        for name, cls in self.vehicle_classes.items():
+            if isinstance(cls.depart_lane, int) and cls.depart_lane >= self.road.lane_count:
+                raise ValueError(f'vehicle_classes.{name}.depart_lane: {cls.depart_lane} is not a '
+                                 f'lane of a {self.road.lane_count}-lane road')
+        if self.vehicle_classes['HV2'].right_change_clearance is None:
+            raise ValueError('vehicle_classes.HV2.right_change_clearance: required')
+        return self
+
+    @property
+    def total_vehicles(self) -> int:
+        return sum(c.count for c in self.vehicle_classes.values())
+
+
+# --- graph ------------------------------------------------------------------------------
+
+class GraphConfig(Strict):
+    max_vehicles: Annotated[int, Field(gt=0)]
+    sensing_range: PositiveFloat
+    feature_set: Literal['paper']
+
+
+# --- reward and modes -------------------------------------------------------------------
+
+class SubRewardValues(Strict):
+    """One number per reward row (result, efficiency, comfort, safety)."""
+    result: float
+    efficiency: float
+    comfort: float
+    safety: float
+
+
+class ModeConfig(Strict):
+    decision_weights: SubRewardValues
+    incentive: Probability
+    punishment: Probability
+
+
+class ModesConfig(Strict):
+    modes: dict[str, ModeConfig]
+
+
+class SpeedBounds(Strict):
+    highway: Annotated[float, Field(ge=0)]
+    ramp: Annotated[float, Field(ge=0)]
+
+
+class MatrixRewardConfig(Strict):
+    kind: Literal['matrix']
+    exponent_cap: PositiveFloat | None
+    lane_change_cap: Annotated[int, Field(gt=0)] | None
+    dynamic_weights: bool
+    comfort_vehicles: Literal['all', 'cav']
+    v_min: SpeedBounds
+    scales: SubRewardValues
+
+    @model_validator(mode='after')
+    def _positive_scales(self) -> MatrixRewardConfig:
+        for key, value in self.scales.model_dump().items():
+            if value <= 0:
+                raise ValueError(f'scales.{key}: must be > 0, got {value}')
+        return self
+
+
+class BaselineRewardConfig(Strict):
+    kind: Literal['baseline']
+    intention: float
+    speed: float
+    lane_change: float
+    collision: float
+
+
+RewardVariant = Annotated[MatrixRewardConfig | BaselineRewardConfig, Field(discriminator='kind')]
+
+
+class RewardConfig(Strict):
+    variants: dict[str, RewardVariant]
+
+
+# --- environment ------------------------------------------------------------------------
+
+class ActionGridConfig(Strict):
+    lane_changes: tuple[Literal[-1, 0, 1], ...]
+    acceleration_min: float
+    acceleration_max: float
+    acceleration_step: PositiveFloat
+
+    @model_validator(mode='after')
+    def _ordered(self) -> ActionGridConfig:
+        if self.acceleration_max < self.acceleration_min:
+            raise ValueError('acceleration_max: must be >= acceleration_min')
+        if len(set(self.lane_changes)) != len(self.lane_changes) or 0 not in self.lane_changes:
+            raise ValueError('lane_changes: must be distinct and include 0 (keep)')
+        return self
+
+
+class EnvConfig(Strict):
+    decision_interval: Annotated[int, Field(ge=1)]
+    actions: ActionGridConfig
+    reward_variant: str
+    mode: str
+
+
+# --- loading ----------------------------------------------------------------------------
+
+def default_config_dir() -> Path:
+    """The source tree's config/ when running from a checkout, else the installed share dir."""
+    in_tree = Path(__file__).resolve().parent.parent / 'config'
+    if in_tree.is_dir():
+        return in_tree
+    return Path(sys.prefix) / 'share' / 'exit_decision' / 'config'
+
+
+SchemaT = TypeVar('SchemaT', bound=BaseModel)
+
+
+def _format_error(path: Path, error: ValidationError) -> str:
+    lines = [f'{path}: invalid configuration']
+    for item in error.errors():
+        key = '.'.join(str(part) for part in item['loc'] if not str(part).startswith('function-'))
+        lines.append(f'  {key or "(top level)"}: {item["msg"]} (got {item.get("input")!r})')
+    return '\n'.join(lines)
+
+
+def parse(schema: type[SchemaT], data: object, source: Path | str = '<dict>') -> SchemaT:
+    """Validate already-loaded data against a schema; raise ConfigError naming the keys."""
+    try:
+        return schema.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(_format_error(Path(source), error)) from None
+
+
+def load_yaml(path: Path) -> object:
+    try:
+        with open(path, encoding='utf-8') as stream:
+            return yaml.safe_load(stream)
+    except OSError as error:
+        raise ConfigError(f'{path}: cannot read ({error.strerror})') from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f'{path}: not valid YAML ({error})') from None
+
+
+def load(schema: type[SchemaT], path: Path | str) -> SchemaT:
+    path = Path(path)
+    return parse(schema, load_yaml(path), path)
+
+
+def deep_merge(base: dict, override: dict) -> dict:
+    """Return base with override applied key by key (nested dicts merged, others replaced)."""
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def load_scenario(path: Path | str | None = None, override: Path | str | None = None) -> ScenarioConfig:
+    """The scenario config, optionally with an override file (a variant: denser traffic, ...)."""
+    path = Path(path) if path else default_config_dir() / 'scenario.yaml'
+    data = load_yaml(path)
+    if override:
+        extra = load_yaml(Path(override))
+        if not isinstance(extra, dict) or not isinstance(data, dict):
+            raise ConfigError(f'{override}: a scenario override must be a mapping')
+        data, path = deep_merge(data, extra), Path(override)
+    return parse(ScenarioConfig, data, path)
+
+
+class ProjectConfig(BaseModel):
+    """Everything the environment needs, loaded from one config directory."""
+    model_config = ConfigDict(frozen=True)
+    scenario: ScenarioConfig
+    graph: GraphConfig
+    env: EnvConfig
+    modes: dict[str, ModeConfig]
+    rewards: dict[str, MatrixRewardConfig | BaselineRewardConfig]
+
+    def mode(self, name: str) -> ModeConfig:
+        if name not in self.modes:
+            raise ConfigError(f'unknown mode {name!r}; known modes: {", ".join(self.modes)}')
+        return self.modes[name]
+
+    def reward(self, name: str) -> MatrixRewardConfig | BaselineRewardConfig:
+        if name not in self.rewards:
+            raise ConfigError(f'unknown reward variant {name!r}; known: {", ".join(self.rewards)}')
+        return self.rewards[name]
+
+
+def load_project(config_dir: Path | str | None = None, scenario_override: Path | str | None = None
+                 ) -> ProjectConfig:
+    directory = Path(config_dir) if config_dir else default_config_dir()
+    config = ProjectConfig(
+        scenario=load_scenario(directory / 'scenario.yaml', scenario_override),
+        graph=load(GraphConfig, directory / 'graph.yaml'),
+        env=load(EnvConfig, directory / 'env.yaml'),
+        modes=load(ModesConfig, directory / 'modes.yaml').modes,
+        rewards=load(RewardConfig, directory / 'reward.yaml').variants,
+    )
+    config.mode(config.env.mode)
+    config.reward(config.env.reward_variant)
+    return config

@@ -1,0 +1,1 @@
+"""Evaluation: episode metrics (SPEC section 6), evaluation runs and plots."""

@@ -1,0 +1,115 @@
+"""Vehicle states -> the graph the policy sees (SPEC section 2). The only graph builder.
+
+Training, evaluation and the ROS graph-builder node all call ``GraphBuilder.build`` so a
+policy sees in ROS exactly what it saw in training.
+
+- Rows are slots: a vehicle takes the lowest free slot when it first appears and keeps it
+  for its whole life (so row i at t and t+m is the same vehicle); absent rows are zero.
+- Features (``paper`` set, F = 8): speed / v_max, position / road length, lane one-hot (3),
+  intention one-hot (change left, change right, keep).
+- Adjacency (0/1, symmetric): each vehicle with itself; every CAV with every CAV; a CAV
+  with an HV within the sensing range (longitudinal, any lane); never HV with HV.
+- CAV mask: 1 on CAV rows.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from exit_decision.config import GraphConfig
+from exit_decision.traffic import INTENTION_LEFT, INTENTION_RIGHT, VehicleState
+
+PAPER_FEATURES = ('speed', 'position', 'lane_0', 'lane_1', 'lane_2',
+                  'intention_left', 'intention_right', 'intention_keep')
+FEATURE_SETS = {'paper': PAPER_FEATURES}
+
+
+class GraphCapacityError(RuntimeError):
+    """More vehicles on the road than the graph has rows (raise graph.max_vehicles)."""
+
+
+@dataclass(frozen=True, slots=True)
+class TrafficGraph:
+    features: np.ndarray        # (N, F) float32
+    adjacency: np.ndarray       # (N, N) uint8
+    cav_mask: np.ndarray        # (N,) bool
+    vehicle_ids: tuple[str, ...]  # N entries, '' for empty rows
+
+    @property
+    def num_nodes(self) -> int:
+        return self.features.shape[0]
+
+    def cav_rows(self) -> np.ndarray:
+        return np.flatnonzero(self.cav_mask)
+
+
+class GraphBuilder:
+    """Stateful (slot assignment) builder of ``TrafficGraph`` from vehicle states."""
+
+    def __init__(self, config: GraphConfig, road_length: float, speed_scale: float,
+                 lane_count: int = 3):
+        if lane_count != 3:
+            raise ValueError(f'the paper feature set has a 3-lane one-hot; got lane_count={lane_count}')
+        self.config = config
+        self.road_length = road_length
+        self.speed_scale = speed_scale
+        self.feature_names = FEATURE_SETS[config.feature_set]
+        self.reset()
+
+    @property
+    def num_features(self) -> int:
+        return len(self.feature_names)
+
+    def reset(self) -> None:
+        """Forget all slots (new episode)."""
+        self._slot_of: dict[str, int] = {}
+        self._free = list(range(self.config.max_vehicles))
+
+    def slots(self, vehicles: Sequence[VehicleState]) -> list[int]:
+        """Slots of the given vehicles: kept ones stay, gone ones are freed, new ones assigned."""
+        present = {v.vehicle_id for v in vehicles}
+        for vehicle_id in [vid for vid in self._slot_of if vid not in present]:
+            self._free.append(self._slot_of.pop(vehicle_id))
+        self._free.sort(reverse=True)  # pop() hands out the lowest free slot
+        result = []
+        for vehicle in vehicles:
+            slot = self._slot_of.get(vehicle.vehicle_id)
+            if slot is None:
+                if not self._free:
+                    raise GraphCapacityError(
+                        f'{len(vehicles)} vehicles on the road but graph.max_vehicles = '
+                        f'{self.config.max_vehicles}')
+                slot = self._slot_of[vehicle.vehicle_id] = self._free.pop()
+            result.append(slot)
+        return result
+
+    def build(self, vehicles: Sequence[VehicleState]) -> TrafficGraph:
+        n = self.config.max_vehicles
+        rows = np.asarray(self.slots(vehicles), dtype=np.intp)
+        features = np.zeros((n, self.num_features), dtype=np.float32)
+        adjacency = np.zeros((n, n), dtype=np.uint8)
+        cav_mask = np.zeros(n, dtype=bool)
+        ids = [''] * n
+        if len(vehicles):
+            speed = np.array([v.speed for v in vehicles])
+            position = np.array([v.position for v in vehicles])
+            lane = np.array([v.lane_index for v in vehicles])
+            intention = np.array([v.intention for v in vehicles])
+            is_cav = np.array([v.is_cav for v in vehicles])
+            features[rows, 0] = speed / self.speed_scale
+            features[rows, 1] = position / self.road_length
+            features[rows, 2 + lane] = 1.0
+            features[rows, 5] = intention == INTENTION_LEFT
+            features[rows, 6] = intention == INTENTION_RIGHT
+            features[rows, 7] = (intention != INTENTION_LEFT) & (intention != INTENTION_RIGHT)
+            # Edges among the present vehicles, then scattered into slot order.
+            close = np.abs(position[:, None] - position[None, :]) <= self.config.sensing_range
+            links = (is_cav[:, None] & is_cav[None, :]) | (close & (is_cav[:, None] ^ is_cav[None, :]))
+            np.fill_diagonal(links, True)
+            adjacency[np.ix_(rows, rows)] = links
+            cav_mask[rows] = is_cav
+            for row, vehicle in zip(rows, vehicles):
+                ids[row] = vehicle.vehicle_id
+        return TrafficGraph(features, adjacency, cav_mask, tuple(ids))

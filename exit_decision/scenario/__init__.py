@@ -1,0 +1,1 @@
+"""The highway-exit scenario: SUMO network, traffic and the libsumo simulation wrapper."""

@@ -1,0 +1,53 @@
+"""Where every lane of the generated network lies along the road (junction lanes included).
+
+Positions are measured from the start of Highway_0; netconvert puts a junction lane of a
+few metres between consecutive edges, and it counts. Used by the simulation to report
+positions and by anything that needs the road length without running SUMO (graph node).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import sumolib
+
+from exit_decision.config import RoadConfig
+from exit_decision.scenario.sumo_inputs import DIVERGES, HIGHWAY_EDGES, build_network
+
+
+@dataclass(frozen=True, slots=True)
+class LaneInfo:
+    edge_id: str            # reported edge (the edge ahead, for a junction lane)
+    lane_index: int         # reported lane index (of the lane ahead, for a junction lane)
+    offset: float           # [m] position of the lane's start along the road
+    speed_limit: float      # [m/s]
+
+
+@dataclass(frozen=True)
+class RoadGeometry:
+    net_file: Path
+    lanes: dict[str, LaneInfo]
+    diverge_at: dict[str, float]     # [m] position of the end of Highway_0 / Highway_1
+    road_length: float               # [m] start of Highway_0 to the end of Highway_2
+
+    @classmethod
+    def of(cls, road: RoadConfig) -> RoadGeometry:
+        net_file = build_network(road)
+        net = sumolib.net.readNet(str(net_file), withInternal=True)
+        lanes: dict[str, LaneInfo] = {}
+        offsets = {'Highway_0': 0.0}
+        for edge_id in (*HIGHWAY_EDGES, *DIVERGES.values()):
+            edge = net.getEdge(edge_id)
+            start = offsets[edge_id]
+            for lane in edge.getLanes():
+                lanes[lane.getID()] = LaneInfo(edge_id, lane.getIndex(), start, lane.getSpeed())
+            junction_start = start + edge.getLength()
+            for connections in edge.getOutgoing().values():
+                for connection in connections:
+                    via = net.getLane(connection.getViaLaneID())
+                    to_lane = connection.getToLane()
+                    lanes[via.getID()] = LaneInfo(to_lane.getEdge().getID(), to_lane.getIndex(),
+                                                  junction_start, via.getSpeed())
+                    offsets[to_lane.getEdge().getID()] = junction_start + via.getLength()
+        ends = {edge: offsets[edge] + net.getEdge(edge).getLength() for edge in HIGHWAY_EDGES}
+        return cls(net_file, lanes, {edge: ends[edge] for edge in DIVERGES}, ends['Highway_2'])

@@ -1,0 +1,130 @@
+"""SUMO input files of the scenario, generated from config: the road network and the routes.
+
+Plain XML (nodes, edges, connections) is written from ``RoadConfig`` and compiled by
+SUMO's netconvert; vehicle types and routes are written from the scenario config. Both are
+cached by a hash of their text, so a scenario variant gets its own files and nothing
+generated is ever edited by hand.
+
+Edges: Highway_0 -> Highway_1 -> Highway_2 (``lane_count`` lanes, lane 0 rightmost);
+Exit_0 leaves lane 0 at the end of Highway_0, Exit_1 lane 0 at the end of Highway_1.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+from exit_decision.config import RoadConfig, ScenarioConfig
+
+HIGHWAY_EDGES = ('Highway_0', 'Highway_1', 'Highway_2')
+EXIT_EDGES = ('Exit_0', 'Exit_1')
+#: The ramp that leaves lane 0 at the end of each highway edge.
+DIVERGES = {'Highway_0': 'Exit_0', 'Highway_1': 'Exit_1'}
+#: Route ids in the routes file, by the edge a vehicle leaves the road by.
+ROUTES = {'Highway_2': ('Highway_0', 'Highway_1', 'Highway_2'),
+          'Exit_0': ('Highway_0', 'Exit_0'),
+          'Exit_1': ('Highway_0', 'Highway_1', 'Exit_1')}
+SUMO_CAR_FOLLOWING = {'IDM': 'IDM', 'Krauss': 'Krauss', 'EIDM': 'EIDM'}
+
+
+def _attrs(values: dict) -> str:
+    return ' '.join(f'{key}={quoteattr(str(value))}' for key, value in values.items())
+
+
+def network_sources(road: RoadConfig) -> dict[str, str]:
+    """Plain XML node, edge and connection files for netconvert."""
+    l0, l1, l2 = road.highway_lengths
+    xs = [0.0, l0, l0 + l1, l0 + l1 + l2]
+    ramp_dx, ramp_dy = 0.8 * road.ramp_length, -0.6 * road.ramp_length  # straight, ramp_length long
+    nodes = [('n0', xs[0], 0.0), ('n1', xs[1], 0.0), ('n2', xs[2], 0.0), ('n3', xs[3], 0.0),
+             ('exit0_end', xs[1] + ramp_dx, ramp_dy), ('exit1_end', xs[2] + ramp_dx, ramp_dy)]
+    highway = dict(numLanes=road.lane_count, speed=road.highway_speed_limit)
+    ramp = dict(numLanes=1, speed=road.ramp_speed_limit, length=road.ramp_length)
+    edges = [('Highway_0', 'n0', 'n1', dict(highway, length=l0)),
+             ('Highway_1', 'n1', 'n2', dict(highway, length=l1)),
+             ('Highway_2', 'n2', 'n3', dict(highway, length=l2)),
+             ('Exit_0', 'n1', 'exit0_end', ramp),
+             ('Exit_1', 'n2', 'exit1_end', ramp)]
+    connections = []
+    for upstream, downstream in (('Highway_0', 'Highway_1'), ('Highway_1', 'Highway_2')):
+        connections += [(upstream, downstream, lane, lane) for lane in range(road.lane_count)]
+        connections.append((upstream, DIVERGES[upstream], 0, 0))
+    return {
+        'nod.xml': '<nodes>\n' + ''.join(
+            f'  <node id="{n}" x="{x}" y="{y}" type="priority"/>\n' for n, x, y in nodes) + '</nodes>\n',
+        'edg.xml': '<edges>\n' + ''.join(
+            f'  <edge id="{e}" from="{a}" to="{b}" {_attrs(v)}/>\n' for e, a, b, v in edges) + '</edges>\n',
+        'con.xml': '<connections>\n' + ''.join(
+            f'  <connection from="{a}" to="{b}" fromLane="{i}" toLane="{j}"/>\n'
+            for a, b, i, j in connections) + '</connections>\n',
+    }
+
+
+def routes_source(scenario: ScenarioConfig) -> str:
+    """Vehicle types (one per class) and the three routes; vehicles are added at run time."""
+    lines = ['<routes>']
+    for name, vtype in scenario.vehicle_types.items():
+        lines.append('  <vType ' + _attrs({
+            'id': name, 'vClass': 'passenger', 'length': vtype.length, 'maxSpeed': vtype.max_speed,
+            'accel': vtype.accel, 'decel': vtype.decel, 'emergencyDecel': vtype.emergency_decel,
+            'speedFactor': vtype.speed_factor, 'speedDev': vtype.speed_dev,
+            'lcCooperative': vtype.politeness,
+            'carFollowModel': SUMO_CAR_FOLLOWING[vtype.car_following]}) + '/>')
+    for leaves_by, edges in ROUTES.items():
+        lines.append(f'  <route id="to_{leaves_by}" edges="{" ".join(edges)}"/>')
+    lines.append('</routes>')
+    return '\n'.join(lines) + '\n'
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get('EXIT_DECISION_CACHE', Path(tempfile.gettempdir()) / 'exit_decision_cache'))
+
+
+def _cached(kind: str, key_text: str, file_name: str, write: Callable[[Path], None]) -> Path:
+    """Build ``file_name`` once per distinct input text; safe when processes race."""
+    root = cache_dir()
+    digest = hashlib.sha256(key_text.encode()).hexdigest()[:16]
+    final = root / f'{kind}-{digest}'
+    if (final / file_name).is_file():
+        return final / file_name
+    root.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f'tmp-{kind}-', dir=root))
+    write(work)
+    try:
+        work.rename(final)  # atomic: nobody sees a half-written file
+    except OSError:
+        shutil.rmtree(work, ignore_errors=True)  # another process finished first
+    return final / file_name
+
+
+def build_network(road: RoadConfig) -> Path:
+    """Path of the .net.xml for this road, running netconvert if it is not cached."""
+    sources = network_sources(road)
+
+    def write(work: Path) -> None:
+        netconvert = shutil.which('netconvert')
+        if netconvert is None:
+            raise RuntimeError('netconvert not found on PATH (install the eclipse-sumo wheel, see README)')
+        for suffix, text in sources.items():
+            (work / f'highway_exit.{suffix}').write_text(text, encoding='utf-8')
+        command = [netconvert, '--node-files', 'highway_exit.nod.xml',
+                   '--edge-files', 'highway_exit.edg.xml', '--connection-files', 'highway_exit.con.xml',
+                   '--no-turnarounds', 'true',
+                   '--junctions.limit-turn-speed', '-1',  # ramp connections keep the ramp's limit
+                   '--output-file', 'highway_exit.net.xml']
+        result = subprocess.run(command, cwd=work, capture_output=True, text=True, check=False)
+        if result.returncode != 0:
+            raise RuntimeError(f'netconvert failed ({result.returncode}): {result.stderr.strip()}')
+
+    return _cached('net', repr(sorted(sources.items())), 'highway_exit.net.xml', write)
+
+
+def build_routes(scenario: ScenarioConfig) -> Path:
+    text = routes_source(scenario)
+    return _cached('routes', text, 'highway_exit.rou.xml',
+                   lambda work: (work / 'highway_exit.rou.xml').write_text(text, encoding='utf-8'))

@@ -1,0 +1,137 @@
+"""Vehicle states and the neighbour search shared by the simulation, graph, reward and masks.
+
+A vehicle's *corridor* is what it can have a leader or follower in: a highway lane (the
+same lane index across Highway_0/1/2) or a ramp. Positions are front-bumper distances
+along the road from the start of Highway_0.
+"""
+from __future__ import annotations
+
+import bisect
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
+INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT = -1, 0, 1
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleState:
+    """One vehicle at one step; mirrors exit_decision_msgs/VehicleState."""
+    vehicle_id: str
+    vehicle_class: str          # HV1 | HV2 | HV3 | CAV
+    lane_index: int             # 0 = rightmost; 0 on a ramp
+    edge_id: str                # Highway_0..2, Exit_0..1 (the edge ahead while on a junction)
+    position: float             # [m] front bumper, from the start of Highway_0
+    lateral_offset: float       # [m]
+    speed: float                # [m/s]
+    acceleration: float         # [m/s^2]
+    length: float               # [m]
+    lane_speed_limit: float     # [m/s]
+    intention: int              # INTENTION_* (last commanded lane change for a CAV)
+    route_target: str           # last edge of the current route
+    controlled: bool            # commanded by the decision policy
+
+    @property
+    def is_cav(self) -> bool:
+        return self.vehicle_class == 'CAV'
+
+    @property
+    def on_highway(self) -> bool:
+        return self.edge_id.startswith('Highway')
+
+    @property
+    def corridor(self) -> tuple[str, int]:
+        return ('Highway', self.lane_index) if self.on_highway else (self.edge_id, 0)
+
+
+@dataclass(frozen=True, slots=True)
+class Neighbours:
+    """Closest vehicles ahead and behind in one corridor, with bumper-to-bumper gaps [m]."""
+    leader: VehicleState | None
+    leader_gap: float
+    follower: VehicleState | None
+    follower_gap: float
+
+
+class TrafficSnapshot:
+    """All vehicles of one step, indexed by corridor for leader/follower look-ups."""
+
+    def __init__(self, vehicles: Iterable[VehicleState]):
+        self.vehicles = list(vehicles)
+        self.by_id = {v.vehicle_id: v for v in self.vehicles}
+        lanes: dict[tuple[str, int], list[VehicleState]] = {}
+        for vehicle in self.vehicles:
+            lanes.setdefault(vehicle.corridor, []).append(vehicle)
+        self._lanes = {key: sorted(group, key=lambda v: v.position) for key, group in lanes.items()}
+        self._positions = {key: [v.position for v in group] for key, group in self._lanes.items()}
+
+    def neighbours(self, corridor: tuple[str, int], position: float, length: float,
+                   exclude: str | None = None) -> Neighbours:
+        """Leader and follower of a vehicle (real or hypothetical) at ``position`` in ``corridor``."""
+        group = self._lanes.get(corridor, [])
+        positions = self._positions.get(corridor, [])
+        leader = follower = None
+        i = bisect.bisect_left(positions, position)
+        for candidate in group[i:]:
+            if candidate.vehicle_id != exclude:
+                leader = candidate
+                break
+        for candidate in reversed(group[:i]):
+            if candidate.vehicle_id != exclude:
+                follower = candidate
+                break
+        return Neighbours(
+            leader=leader,
+            leader_gap=leader.position - leader.length - position if leader else float('inf'),
+            follower=follower,
+            follower_gap=position - length - follower.position if follower else float('inf'),
+        )
+
+    def neighbours_of(self, vehicle: VehicleState, lane_offset: int = 0) -> Neighbours:
+        """Neighbours of a vehicle in its own corridor, or in the highway lane ``lane_offset`` away."""
+        if lane_offset == 0:
+            corridor = vehicle.corridor
+        else:
+            corridor = ('Highway', vehicle.lane_index + lane_offset)
+        return self.neighbours(corridor, vehicle.position, vehicle.length, exclude=vehicle.vehicle_id)
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    vehicle_id: str
+    vehicle_class: str
+    exit_edge: str          # Highway_2, Exit_0 or Exit_1
+
+
+@dataclass(frozen=True, slots=True)
+class Collision:
+    collider: str
+    victim: str
+    collider_class: str
+    victim_class: str
+
+    @property
+    def involves_cav(self) -> bool:
+        return 'CAV' in (self.collider_class, self.victim_class)
+
+
+@dataclass(slots=True)
+class StepResult:
+    """The state after a step, and the events of that step."""
+    step: int
+    time: float
+    vehicles: list[VehicleState]
+    arrivals: list[Arrival] = field(default_factory=list)
+    collisions: list[Collision] = field(default_factory=list)
+    braking_starts: list[str] = field(default_factory=list)   # emergency braking began this step
+    lane_changers: list[str] = field(default_factory=list)    # vehicles that changed lane this step
+    inserted: int = 0                                         # vehicles that entered so far
+    waiting: int = 0                                          # drawn but not yet able to enter
+    terminated: bool = False                                  # every vehicle entered and left
+    truncated: bool = False                                   # step cap reached
+
+
+@dataclass(frozen=True, slots=True)
+class CavCommand:
+    lane_change: int        # -1 right, 0 keep, +1 left
+    acceleration: float     # [m/s^2]

@@ -1,0 +1,29 @@
+"""ament_python package exit_decision: executables land in lib/exit_decision (for `ros2 run`)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'exit_decision'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    package_data={PACKAGE: ['scenario/sources/*.xml']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='exit_decision developers',
+    maintainer_email='exit-decision@users.noreply.github.com',
+    description='Graph RL highway-exit decision stack for CAVs (SUMO + ROS 2 Jazzy).',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'exit-decision = exit_decision.cli:main',
+        ],
+    },
+)
