@@ -18,6 +18,10 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help='YAML merged over scenario.yaml (a scenario variant)')
 
 
+def argv_is_cli() -> bool:
+    return len(sys.argv) > 1 and sys.argv[1] == 'run'
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run episodes of the scenario and print the SPEC section 6 metrics."""
     import numpy as np
@@ -40,8 +44,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         env.close()
     label = f'{args.driver} CAVs, reward {config.env.reward_variant}/{env.mode}'
-    print(f'{args.episodes} episode(s), seeds {args.seed}..{args.seed + args.episodes - 1}, {label}')
-    print(markdown_table([(label, summarize(episodes))]))
+    title = f'{args.episodes} episode(s), seeds {args.seed}..{args.seed + args.episodes - 1}, {label}'
+    table = markdown_table([(label, summarize(episodes))])
+    print(title)
+    print(table)
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        command = 'exit-decision ' + ' '.join(sys.argv[1:]) if argv_is_cli() else 'exit-decision run'
+        args.markdown.write_text(
+            f'# {title}\n\nMade by `{command}` (mean ± std over episodes).\n\n{table}\n\n'
+            f'## Configuration\n\n```json\n{config.model_dump_json(indent=2)}\n```\n', encoding='utf-8')
+        print(f'table and configuration: {args.markdown}')
     if args.csv:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
         with open(args.csv, 'w', newline='') as stream:
@@ -73,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
                           'every CAV holding lane and speed (shows that collisions are real)')
     run.add_argument('--mode', default=None, help='decision mode for the reward (default: env.yaml)')
     run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here')
+    run.add_argument('--markdown', type=Path, default=None,
+                     help='write the table with the command and the full configuration here')
     run.set_defaults(func=cmd_run)
 
     bench = commands.add_parser('bench', help='print simulation throughput, libsumo vs TraCI')

@@ -4,7 +4,7 @@ One ``step`` is one decision: every CAV row of the action vector gets its own ac
 the ``ActionGrid``, which is held for ``decision_interval`` simulation steps (a lane change
 is issued once). The reward is the shared scalar of the reward function matrix, summed over
 the interval. Observations are the graph of ``exit_decision.graph`` as a dict of arrays;
-``info['graph']`` carries the full ``TrafficGraph`` (with vehicle ids).
+``env.graph`` is the full ``TrafficGraph`` of the last observation (with vehicle ids).
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ class ExitDecisionEnv(gym.Env):
                                      config.mode(self.mode), scenario.emergency_braking_threshold)
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
         self.observation_space = spaces.Dict({
-            'features': spaces.Box(-np.inf, np.inf, (n, f), np.float32),
+            'features': spaces.Box(0.0, np.inf, (n, f), np.float32),
             'adjacency': spaces.MultiBinary((n, n)),
             'cav_mask': spaces.MultiBinary(n),
         })
@@ -61,7 +61,7 @@ class ExitDecisionEnv(gym.Env):
         self.graph = self.graph_builder.build(result.vehicles)
         self.episode_log = EpisodeLog(self.config.scenario.emergency_braking_threshold)
         self._lane_changes = deque(maxlen=self._window)
-        return self._observation(), {'graph': self.graph, 'seed': episode_seed}
+        return self._observation(), {'seed': episode_seed}
 
     def action_mask(self) -> np.ndarray:
         """(N, A) bool: actions a CAV row may take (lane exists, no change past a diverge
@@ -99,7 +99,7 @@ class ExitDecisionEnv(gym.Env):
             if result.terminated or result.truncated:
                 break
         self.graph = self.graph_builder.build(result.vehicles)
-        info = {'graph': self.graph, 'step_results': results}
+        info = {'step_results': results}
         return self._observation(), total, result.terminated, result.truncated and not result.terminated, info
 
     def close(self) -> None:

@@ -30,7 +30,7 @@ class GraphCapacityError(RuntimeError):
     """More vehicles on the road than the graph has rows (raise graph.max_vehicles)."""
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)   # arrays: compare fields explicitly
 class TrafficGraph:
     features: np.ndarray        # (N, F) float32
     adjacency: np.ndarray       # (N, N) uint8

@@ -96,12 +96,13 @@ class HighwaySimulation:
         self._route_target: dict[str, str] = {}
         self._held_acceleration: dict[str, float] = {}
         self._intention: dict[str, int] = {}
-        self._committed: set[str] = set()
+        self._committed: dict[str, str] = {}   # vehicle -> highway edge whose diverge it committed to
         self._braking: set[str] = set()
         self._inserted = 0
         self._drawn = 0
         self._last = StepResult(step=0, time=0.0, vehicles=[])
         self._snapshot = TrafficSnapshot([])
+        self._on_junction: set[str] = set()
         return self._last
 
     def close(self) -> None:
@@ -154,7 +155,7 @@ class HighwaySimulation:
             return True
         target = vehicle.lane_index + lane_change
         return (vehicle.on_highway and 0 <= target < self.scenario.road.lane_count
-                and vehicle.vehicle_id not in self._committed)
+                and self._committed.get(vehicle.vehicle_id) != vehicle.edge_id)
 
     def step(self, commands: Mapping[str, CavCommand] | None = None) -> StepResult:
         """Apply commands (new decisions; other CAVs hold theirs), then advance one step."""
@@ -187,14 +188,21 @@ class HighwaySimulation:
     # --- the scenario's rules -------------------------------------------------------------
 
     def _apply_hv2_rule(self) -> None:
-        """HV2 moves one lane right whenever the right lane is clear within the clearance."""
+        """HV2 moves one lane right whenever the right lane is clear within the clearance.
+
+        Not inside a junction, and a vehicle that has just taken a ramp still occupies lane 0
+        near the diverge, so ramp vehicles count as lane-0 traffic for the clearance.
+        """
         clearance = self.scenario.vehicle_classes['HV2'].right_change_clearance
         for vehicle in self._last.vehicles:
-            if (vehicle.vehicle_class != 'HV2' or vehicle.lane_index == 0 or not vehicle.on_highway
-                    or vehicle.vehicle_id in self._committed):
+            if (vehicle.vehicle_class != 'HV2' or vehicle.vehicle_id in self._on_junction
+                    or not self.lane_change_allowed(vehicle, -1)):
                 continue
-            target = self._snapshot.neighbours_of(vehicle, lane_offset=-1)
-            if target.leader_gap >= clearance and target.follower_gap >= clearance:
+            target = [self._snapshot.neighbours_of(vehicle, lane_offset=-1)]
+            if vehicle.lane_index == 1:
+                target += [self._snapshot.neighbours((ramp, 0), vehicle.position, vehicle.length)
+                           for ramp in DIVERGES.values()]
+            if all(t.leader_gap >= clearance and t.follower_gap >= clearance for t in target):
                 self._sumo.vehicle.changeLane(vehicle.vehicle_id, vehicle.lane_index - 1,
                                               self.scenario.step_length)
 
@@ -203,13 +211,13 @@ class HighwaySimulation:
         commit = self.scenario.road.diverge_commit_distance
         for vehicle in self._last.vehicles:
             by_lane = vehicle.controlled or vehicle.vehicle_class == 'HV2'
-            if not by_lane or vehicle.vehicle_id in self._committed:
+            if not by_lane or self._committed.get(vehicle.vehicle_id) == vehicle.edge_id:
                 continue
             if vehicle.edge_id not in DIVERGES or self.geometry.diverge_at[vehicle.edge_id] - vehicle.position > commit:
                 continue
             if vehicle.vehicle_class == 'HV2' and vehicle.edge_id != 'Highway_1':
                 continue
-            self._committed.add(vehicle.vehicle_id)
+            self._committed[vehicle.vehicle_id] = vehicle.edge_id
             if vehicle.lane_index == 0:
                 ramp = DIVERGES[vehicle.edge_id]
                 self._sumo.vehicle.setRoute(vehicle.vehicle_id, [vehicle.edge_id, ramp])
@@ -266,10 +274,13 @@ class HighwaySimulation:
             self._braking.discard(vehicle_id)
         previous = self._snapshot.by_id
         results = self._sumo.vehicle.getAllSubscriptionResults()
-        vehicles, braking_starts, lane_changers = [], [], []
+        vehicles, braking_starts, lane_changers, on_junction = [], [], [], set()
         lane_id, lane_pos, lateral, speed, accel, signals = self._vars
         for vehicle_id, values in results.items():
-            info = self._lanes[values[lane_id]]
+            lane = values[lane_id]
+            info = self._lanes[lane]
+            if lane.startswith(':'):
+                on_junction.add(vehicle_id)
             name = self._class_of[vehicle_id]
             before = previous.get(vehicle_id)
             changed = (before is not None and before.edge_id == info.edge_id
@@ -299,6 +310,7 @@ class HighwaySimulation:
                 intention=intention, route_target=self._route_target[vehicle_id],
                 controlled=name == 'CAV' and self.cav_driver == 'policy'))
         self._snapshot = TrafficSnapshot(vehicles)
+        self._on_junction = on_junction
         total = self.scenario.total_vehicles
         return StepResult(
             step=self._step, time=self._step * self.scenario.step_length, vehicles=vehicles,

@@ -29,6 +29,7 @@ DIVERGES = {'Highway_0': 'Exit_0', 'Highway_1': 'Exit_1'}
 ROUTES = {'Highway_2': ('Highway_0', 'Highway_1', 'Highway_2'),
           'Exit_0': ('Highway_0', 'Exit_0'),
           'Exit_1': ('Highway_0', 'Highway_1', 'Exit_1')}
+LANE_WIDTH = 3.2   # [m] SUMO's default
 SUMO_CAR_FOLLOWING = {'IDM': 'IDM', 'Krauss': 'Krauss', 'EIDM': 'EIDM'}
 
 
@@ -40,16 +41,21 @@ def network_sources(road: RoadConfig) -> dict[str, str]:
     """Plain XML node, edge and connection files for netconvert."""
     l0, l1, l2 = road.highway_lengths
     xs = [0.0, l0, l0 + l1, l0 + l1 + l2]
-    ramp_dx, ramp_dy = 0.8 * road.ramp_length, -0.6 * road.ramp_length  # straight, ramp_length long
+    # Lanes spread to the right of an edge's line (SUMO's default), 3.2 m wide. A ramp's line
+    # starts where lane 0's right neighbour would be, so the ramp lane continues lane 0 and
+    # crosses no other lane inside the junction; it then diverges at about 18 degrees.
+    ramp_y0 = -LANE_WIDTH * (road.lane_count - 1)
+    ramp_dx, ramp_dy = 0.95 * road.ramp_length, -0.31 * road.ramp_length
     nodes = [('n0', xs[0], 0.0), ('n1', xs[1], 0.0), ('n2', xs[2], 0.0), ('n3', xs[3], 0.0),
-             ('exit0_end', xs[1] + ramp_dx, ramp_dy), ('exit1_end', xs[2] + ramp_dx, ramp_dy)]
-    highway = dict(numLanes=road.lane_count, speed=road.highway_speed_limit)
-    ramp = dict(numLanes=1, speed=road.ramp_speed_limit, length=road.ramp_length)
+             ('exit0_end', xs[1] + ramp_dx, ramp_y0 + ramp_dy), ('exit1_end', xs[2] + ramp_dx, ramp_y0 + ramp_dy)]
+    highway = dict(numLanes=road.lane_count, speed=road.highway_speed_limit, width=LANE_WIDTH)
+    ramp = dict(numLanes=1, speed=road.ramp_speed_limit, length=road.ramp_length, width=LANE_WIDTH)
     edges = [('Highway_0', 'n0', 'n1', dict(highway, length=l0)),
              ('Highway_1', 'n1', 'n2', dict(highway, length=l1)),
-             ('Highway_2', 'n2', 'n3', dict(highway, length=l2)),
-             ('Exit_0', 'n1', 'exit0_end', ramp),
-             ('Exit_1', 'n2', 'exit1_end', ramp)]
+             ('Highway_2', 'n2', 'n3', dict(highway, length=l2))]
+    for ramp_id, start_node, end_node, x in (('Exit_0', 'n1', 'exit0_end', xs[1]), ('Exit_1', 'n2', 'exit1_end', xs[2])):
+        shape = f'{x},{ramp_y0} {x + ramp_dx},{ramp_y0 + ramp_dy}'
+        edges.append((ramp_id, start_node, end_node, dict(ramp, shape=shape)))
     connections = []
     for upstream, downstream in (('Highway_0', 'Highway_1'), ('Highway_1', 'Highway_2')):
         connections += [(upstream, downstream, lane, lane) for lane in range(road.lane_count)]
@@ -110,6 +116,7 @@ def build_network(road: RoadConfig) -> Path:
         netconvert = shutil.which('netconvert')
         if netconvert is None:
             raise RuntimeError('netconvert not found on PATH (install the eclipse-sumo wheel, see README)')
+        netconvert = os.path.abspath(netconvert)   # it runs in another working directory
         for suffix, text in sources.items():
             (work / f'highway_exit.{suffix}').write_text(text, encoding='utf-8')
         command = [netconvert, '--node-files', 'highway_exit.nod.xml',

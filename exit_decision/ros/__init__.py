@@ -1,0 +1,1 @@
+"""ROS 2 glue: message conversion and (later) the nodes. The only package that imports rclpy."""

@@ -1,0 +1,125 @@
+"""Conversion between the core's types and exit_decision_msgs, with validation.
+
+Arrays are filled from numpy in one assignment (element-wise filling of big sequences is
+slow in rclpy). ``*_from_msg`` functions raise ``MessageError`` naming the field that is
+wrong, so a node can reject and count a malformed message instead of crashing.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, TrafficGraph as GraphMsg,
+                                    VehicleState as VehicleStateMsg, VehicleStateArray)
+
+from exit_decision.graph import TrafficGraph
+from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
+
+CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
+CLASS_NAMES = {code: name for name, code in CLASS_CODES.items()}
+
+
+class MessageError(ValueError):
+    """A message that cannot be used; the text names the field and what is wrong with it."""
+
+
+def stamp_of(seconds: float) -> Time:
+    whole = math.floor(seconds)
+    return Time(sec=int(whole), nanosec=int(round((seconds - whole) * 1e9)) % 1_000_000_000)
+
+
+def vehicle_to_msg(vehicle: VehicleState) -> VehicleStateMsg:
+    return VehicleStateMsg(
+        vehicle_id=vehicle.vehicle_id, vehicle_class=CLASS_CODES[vehicle.vehicle_class],
+        lane_index=vehicle.lane_index, edge_id=vehicle.edge_id, position=vehicle.position,
+        lateral_offset=vehicle.lateral_offset, speed=vehicle.speed, acceleration=vehicle.acceleration,
+        length=vehicle.length, lane_speed_limit=vehicle.lane_speed_limit, intention=vehicle.intention,
+        route_target=vehicle.route_target, controlled=vehicle.controlled)
+
+
+def vehicle_from_msg(msg: VehicleStateMsg) -> VehicleState:
+    if msg.vehicle_class not in CLASS_NAMES:
+        raise MessageError(f'vehicle {msg.vehicle_id!r}: vehicle_class {msg.vehicle_class} is not a known class')
+    for name in ('position', 'lateral_offset', 'speed', 'acceleration', 'length', 'lane_speed_limit'):
+        if not math.isfinite(getattr(msg, name)):
+            raise MessageError(f'vehicle {msg.vehicle_id!r}: {name} is not finite')
+    if not msg.vehicle_id:
+        raise MessageError('a vehicle has an empty vehicle_id')
+    return VehicleState(
+        vehicle_id=msg.vehicle_id, vehicle_class=CLASS_NAMES[msg.vehicle_class], lane_index=msg.lane_index,
+        edge_id=msg.edge_id, position=msg.position, lateral_offset=msg.lateral_offset, speed=msg.speed,
+        acceleration=msg.acceleration, length=msg.length, lane_speed_limit=msg.lane_speed_limit,
+        intention=msg.intention, route_target=msg.route_target, controlled=msg.controlled)
+
+
+def states_to_msg(vehicles: Sequence[VehicleState], *, episode: int, step: int, step_length: float,
+                  frame_id: str = 'road') -> VehicleStateArray:
+    msg = VehicleStateArray(episode=episode, step=step, step_length=step_length,
+                            vehicles=[vehicle_to_msg(v) for v in vehicles])
+    msg.header.stamp = stamp_of(step * step_length)
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
+    vehicles = [vehicle_from_msg(v) for v in msg.vehicles]
+    if len({v.vehicle_id for v in vehicles}) != len(vehicles):
+        raise MessageError('vehicles: a vehicle_id appears twice')
+    return vehicles
+
+
+def graph_to_msg(graph: TrafficGraph, *, feature_set: str, episode: int, step: int,
+                 stamp_seconds: float) -> GraphMsg:
+    msg = GraphMsg(episode=episode, step=step, num_nodes=graph.features.shape[0],
+                   num_features=graph.features.shape[1], feature_set=feature_set,
+                   vehicle_ids=list(graph.vehicle_ids))
+    msg.features = graph.features.astype(np.float32, copy=False).ravel()
+    msg.adjacency = graph.adjacency.astype(np.uint8, copy=False).ravel()
+    msg.cav_mask = graph.cav_mask.astype(np.uint8).ravel()
+    msg.header.stamp = stamp_of(stamp_seconds)
+    msg.header.frame_id = 'road'
+    return msg
+
+
+def graph_from_msg(msg: GraphMsg, *, expected_nodes: int | None = None,
+                   expected_features: int | None = None) -> TrafficGraph:
+    n, f = msg.num_nodes, msg.num_features
+    if expected_nodes is not None and n != expected_nodes:
+        raise MessageError(f'num_nodes is {n}, the policy expects {expected_nodes}')
+    if expected_features is not None and f != expected_features:
+        raise MessageError(f'num_features is {f}, the policy expects {expected_features}')
+    sizes = {'features': n * f, 'adjacency': n * n, 'cav_mask': n, 'vehicle_ids': n}
+    for name, size in sizes.items():
+        if len(getattr(msg, name)) != size:
+            raise MessageError(f'{name} has {len(getattr(msg, name))} entries, expected {size} '
+                               f'for num_nodes={n}, num_features={f}')
+    features = np.frombuffer(msg.features, dtype=np.float32).reshape(n, f) if n * f else np.zeros((n, f), np.float32)
+    if not np.isfinite(features).all():
+        raise MessageError('features contain non-finite values')
+    adjacency = np.frombuffer(bytes(msg.adjacency), dtype=np.uint8).reshape(n, n)
+    cav_mask = np.frombuffer(bytes(msg.cav_mask), dtype=np.uint8).astype(bool)
+    return TrafficGraph(features.copy(), adjacency.copy(), cav_mask, tuple(msg.vehicle_ids))
+
+
+def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: int, stamp_seconds: float,
+                    mode: str, algorithm: str, policy: str) -> CavCommandArray:
+    msg = CavCommandArray(episode=episode, step=step, mode=mode, algorithm=algorithm, policy=policy,
+                          commands=[CavCommandMsg(vehicle_id=vid, lane_change=c.lane_change,
+                                                  acceleration=c.acceleration)
+                                    for vid, c in commands.items()])
+    msg.header.stamp = stamp_of(stamp_seconds)
+    msg.header.frame_id = 'road'
+    return msg
+
+
+def commands_from_msg(msg: CavCommandArray) -> dict[str, CavCommand]:
+    commands = {}
+    for command in msg.commands:
+        if command.vehicle_id in commands:
+            raise MessageError(f'commands: {command.vehicle_id!r} has two commands')
+        if not math.isfinite(command.acceleration):
+            raise MessageError(f'commands: {command.vehicle_id!r} acceleration is not finite')
+        commands[command.vehicle_id] = CavCommand(int(command.lane_change), float(command.acceleration))
+    return commands

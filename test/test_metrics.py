@@ -1,0 +1,44 @@
+"""SPEC section 6 metrics from a hand-made episode log."""
+import math
+
+import pytest
+
+from exit_decision.evaluation.metrics import EpisodeLog, markdown_table, summarize
+from exit_decision.traffic import Arrival, Collision, StepResult
+
+from conftest import make_vehicle
+
+
+def test_metrics_of_a_hand_made_episode():
+    log = EpisodeLog(braking_threshold=-4.5)
+    cav1, cav2 = make_vehicle('c1', 'CAV', speed=20.0), make_vehicle('c2', 'CAV', speed=10.0)
+    hv2 = make_vehicle('h2', 'HV2', speed=30.0)
+    log.record(StepResult(1, 0.1, [cav1, cav2, hv2]), reward=1.0)
+    # c1 brakes hard for two steps (one event), h2 once later (a second event)
+    braking = make_vehicle('c1', 'CAV', speed=20.0, acceleration=-5.0)
+    log.record(StepResult(2, 0.2, [braking, cav2, hv2], braking_starts=['c1']), reward=2.0)
+    log.record(StepResult(3, 0.3, [braking, cav2], arrivals=[Arrival('h2', 'HV2', 'Exit_1')],
+                          collisions=[Collision('c2', 'x', 'CAV', 'HV1'), Collision('y', 'z', 'HV1', 'HV3')]),
+               reward=-3.0)
+    log.record(StepResult(4, 0.4, [], arrivals=[Arrival('c1', 'CAV', 'Exit_1')]))
+    m = log.metrics()
+    assert m['v_AVs'] == pytest.approx((20 + 10) * 3 / 6)
+    assert m['v_s'] == pytest.approx(((20 + 10 + 30) * 2 + 20 + 10) / 8)
+    assert m['p_collision'] == pytest.approx(2 / 2)
+    assert m['p_collision_CAV'] == pytest.approx(1 / 2)
+    assert m['N_braking'] == 1 and m['braking_steps'] == 2
+    assert m['p_CAV'] == pytest.approx(0.5) and m['p_HV2'] == pytest.approx(1.0)
+    assert m['reward'] == pytest.approx(0.0) and m['steps'] == 4
+
+
+def test_empty_log_gives_nan_not_zero_division():
+    m = EpisodeLog().metrics()
+    assert math.isnan(m['p_CAV']) and math.isnan(m['v_AVs'])
+
+
+def test_summary_and_table():
+    episodes = [{**dict.fromkeys(('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking',
+                                  'braking_steps', 'p_CAV', 'p_HV2', 'reward', 'steps'), v)} for v in (1.0, 3.0)]
+    summary = summarize(episodes)
+    assert summary['p_CAV'] == (2.0, 1.0)
+    assert '| run-a | 2 ± 1 |' in markdown_table([('run-a', summary)])
