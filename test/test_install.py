@@ -51,3 +51,9 @@ def test_invalid_config_fails_with_the_key_and_exit_code_2(tmp_path):
     assert result.returncode == 2
     assert 'road.lane_count' in result.stderr
     assert 'Traceback' not in result.stderr
+
+
+def test_unknown_mode_is_refused_with_the_known_ones():
+    result = cli('run', '--mode', 'FAST')
+    assert result.returncode == 2
+    assert "unknown mode 'FAST'" in result.stderr and 'AGGI' in result.stderr
