@@ -176,9 +176,25 @@ class ActionGridConfig(Strict):
         return self
 
 
+class ShieldConfig(Strict):
+    lane_gap: bool
+    gap_front: Annotated[float, Field(ge=0)]
+    gap_back: Annotated[float, Field(ge=0)]
+    gap_back_time: Annotated[float, Field(ge=0)]
+    gap_reservation: bool
+    stop_capable: bool
+    ego_max_braking: PositiveFloat
+    leader_max_braking: PositiveFloat
+    stop_margin: Annotated[float, Field(ge=0)]
+    human_follower_braking: bool
+    hard_braking: Annotated[float, Field(lt=0)]
+    human_follower_distance: Annotated[float, Field(ge=0)]
+
+
 class EnvConfig(Strict):
     decision_interval: Annotated[int, Field(ge=1)]
     actions: ActionGridConfig
+    shield: ShieldConfig
     reward_variant: str
     mode: str
 

@@ -16,6 +16,7 @@ import numpy as np
 from gymnasium import spaces
 
 from exit_decision.actions import ActionGrid
+from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
 from exit_decision.evaluation.metrics import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
@@ -37,6 +38,8 @@ class ExitDecisionEnv(gym.Env):
         self.graph_builder = GraphBuilder(config.graph, self.sim.geometry.road_length,
                                           scenario.road.highway_speed_limit, scenario.road.lane_count)
         self.actions = ActionGrid(config.env.actions)
+        self.shield = Shield(config.env.shield, self.actions, self.sim.geometry,
+                             config.env.decision_interval * scenario.step_length)
         self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
                                      config.mode(self.mode), scenario.emergency_braking_threshold)
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
@@ -63,17 +66,9 @@ class ExitDecisionEnv(gym.Env):
         self._lane_changes = deque(maxlen=self._window)
         return self._observation(), {'seed': episode_seed}
 
-    def action_mask(self) -> np.ndarray:
-        """(N, A) bool: actions a CAV row may take (lane exists, no change past a diverge
-        commitment). Rows that are not CAVs have no allowed action."""
-        mask = np.zeros((self.graph.num_nodes, self.actions.size), dtype=bool)
-        vehicles = self.sim.snapshot.by_id
-        for row in self.graph.cav_rows():
-            vehicle = vehicles[self.graph.vehicle_ids[row]]
-            for lane_change in self.actions.lane_changes:
-                if self.sim.lane_change_allowed(vehicle, lane_change):
-                    mask[row, self.actions.lane_change_of == lane_change] = True
-        return mask
+    def cav_ids(self) -> list[str]:
+        """Vehicle ids of the CAV rows of the current graph, in row order."""
+        return [self.graph.vehicle_ids[row] for row in self.graph.cav_rows()]
 
     def commands(self, action: np.ndarray) -> dict:
         """The commands of an action vector (one entry per graph row; CAV rows are used)."""

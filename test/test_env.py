@@ -37,21 +37,6 @@ def test_a_decision_holds_for_the_interval_and_sums_the_reward(env, project_conf
     assert env.graph.vehicle_ids[row] == vehicle_id, 'a vehicle keeps its row'
 
 
-def test_action_mask_forbids_lanes_off_the_road_only_on_cav_rows(env):
-    env.reset(seed=0)
-    keep = env.actions.index(0, 0.0)
-    for _ in range(10):
-        env.step(np.full(env.graph.num_nodes, keep))
-    mask = env.action_mask()
-    graph = env.graph
-    assert not mask[~graph.cav_mask].any()
-    for row in graph.cav_rows():
-        lane = env.sim.snapshot.by_id[graph.vehicle_ids[row]].lane_index
-        assert mask[row, env.actions.lane_change_of == 0].all()
-        assert mask[row, env.actions.lane_change_of == -1].any() == (lane > 0)
-        assert mask[row, env.actions.lane_change_of == 1].any() == (lane < 2)
-
-
 def test_an_episode_ends_and_its_metrics_are_complete(project_config):
     env = ExitDecisionEnv(project_config, cav_driver='sumo')
     try:

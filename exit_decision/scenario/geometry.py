@@ -13,6 +13,7 @@ import sumolib
 
 from exit_decision.config import RoadConfig
 from exit_decision.scenario.sumo_inputs import DIVERGES, HIGHWAY_EDGES, build_network
+from exit_decision.traffic import VehicleState
 
 
 @dataclass(frozen=True, slots=True)
@@ -28,7 +29,23 @@ class RoadGeometry:
     net_file: Path
     lanes: dict[str, LaneInfo]
     diverge_at: dict[str, float]     # [m] position of the end of Highway_0 / Highway_1
+    merge_done_at: dict[str, float]  # [m] where the junction after that edge ends (next edge starts)
     road_length: float               # [m] start of Highway_0 to the end of Highway_2
+    commit_distance: float           # [m] before a diverge, the lane held picks the exit
+    lane_count: int
+
+    def lane_change_exists(self, vehicle: VehicleState, lane_change: int) -> bool:
+        """The target lane is on the road, and the vehicle is not where its lane picks its exit."""
+        if lane_change == 0:
+            return True
+        return (vehicle.on_highway and 0 <= vehicle.lane_index + lane_change < self.lane_count
+                and not self.no_lane_change_zone(vehicle.position))
+
+    def no_lane_change_zone(self, position: float) -> bool:
+        """True in the last metres before a diverge and on its junction: no lane changes there
+        (the lane held picks the exit; SUMO has no lane changes on junction lanes)."""
+        return any(end - self.commit_distance <= position < self.merge_done_at[edge]
+                   for edge, end in self.diverge_at.items())
 
     @classmethod
     def of(cls, road: RoadConfig) -> RoadGeometry:
@@ -50,4 +67,8 @@ class RoadGeometry:
                                                   junction_start, via.getSpeed())
                     offsets[to_lane.getEdge().getID()] = junction_start + via.getLength()
         ends = {edge: offsets[edge] + net.getEdge(edge).getLength() for edge in HIGHWAY_EDGES}
-        return cls(net_file, lanes, {edge: ends[edge] for edge in DIVERGES}, ends['Highway_2'])
+        following = dict(zip(HIGHWAY_EDGES, HIGHWAY_EDGES[1:]))
+        return cls(net_file, lanes, diverge_at={edge: ends[edge] for edge in DIVERGES},
+                   merge_done_at={edge: offsets[following[edge]] for edge in DIVERGES},
+                   road_length=ends['Highway_2'], commit_distance=road.diverge_commit_distance,
+                   lane_count=road.lane_count)

@@ -150,12 +150,8 @@ class HighwaySimulation:
                                    f'got {command.acceleration!r}')
 
     def lane_change_allowed(self, vehicle: VehicleState, lane_change: int) -> bool:
-        """A lane change exists (target lane on the road) and is not past a diverge commitment."""
-        if lane_change == 0:
-            return True
-        target = vehicle.lane_index + lane_change
-        return (vehicle.on_highway and 0 <= target < self.scenario.road.lane_count
-                and self._committed.get(vehicle.vehicle_id) != vehicle.edge_id)
+        """A lane change exists (target lane on the road) and is not in a diverge zone."""
+        return self.geometry.lane_change_exists(vehicle, lane_change)
 
     def step(self, commands: Mapping[str, CavCommand] | None = None) -> StepResult:
         """Apply commands (new decisions; other CAVs hold theirs), then advance one step."""

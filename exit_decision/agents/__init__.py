@@ -1,0 +1,1 @@
+"""Controllers in the action space: the safety shield (action masks) and the rule-based driver."""

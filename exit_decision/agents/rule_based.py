@@ -1,0 +1,143 @@
+"""A rule-based CAV driver in the policy's own action space: the demonstrator and a baseline.
+
+Lane plan: before Exit_0, hold lane 1 (out of lane 0, which would take Exit_0, and one change
+from lane 0); after Exit_0's junction, move right into lane 0 before Exit_1's diverge.
+Speed: IDM towards the lane's limit, slowing to the ramp's limit before Exit_1 with a
+comfortable deceleration; while waiting for a gap to the right, it drops back a little.
+Every choice is made under the same shield as the learned policy, and quantised to the grid.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.shield import Decision, Shield
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import TrafficSnapshot, VehicleState
+
+
+@dataclass(frozen=True)
+class IdmParameters:
+    max_acceleration: float = 2.5      # [m/s^2]
+    comfortable_braking: float = 3.0   # [m/s^2]
+    time_headway: float = 1.2          # [s]
+    standstill_gap: float = 2.5        # [m]
+    gap_search_braking: float = 1.0    # [m/s^2] drop back while a right change is blocked
+    firm_braking: float = 3.5          # [m/s^2] the most the rules brake by themselves
+    urgent_braking: float = 4.5        # [m/s^2] braking accepted for a lane change at the deadline
+    urgency_distance: float = 200.0    # [m] before the deadline, lane changes become urgent
+
+
+class RuleBasedDriver:
+    name = 'rule_based'
+
+    def __init__(self, grid: ActionGrid, shield: Shield, geometry: RoadGeometry,
+                 ramp_speed_limit: float, idm: IdmParameters = IdmParameters()):
+        self.grid = grid
+        self.shield = shield
+        self.geometry = geometry
+        self.ramp_speed_limit = ramp_speed_limit
+        self.idm_parameters = idm
+
+    def target_lane(self, vehicle: VehicleState) -> int:
+        if vehicle.position < self.geometry.merge_done_at['Highway_0']:
+            return 1
+        return 0
+
+    def desired_speed(self, vehicle: VehicleState) -> float:
+        limit = vehicle.lane_speed_limit
+        if vehicle.on_highway and vehicle.position >= self.geometry.merge_done_at['Highway_0']:
+            # slow to the ramp's limit by the Exit_1 diverge, braking comfortably
+            distance = max(self.geometry.diverge_at['Highway_1'] - vehicle.position, 0.0)
+            limit = min(limit, math.sqrt(self.ramp_speed_limit ** 2
+                                         + 2 * self.idm_parameters.comfortable_braking * distance))
+        return limit
+
+    def idm(self, speed: float, desired: float, gap: float | None, leader_speed: float) -> float:
+        """IDM acceleration; ``gap`` None means no leader."""
+        p = self.idm_parameters
+        free = 1.0 - (speed / desired) ** 4 if desired > 0 else -1.0
+        if gap is None:
+            return p.max_acceleration * free
+        wanted = p.standstill_gap + speed * p.time_headway + speed * (speed - leader_speed) / (
+            2 * math.sqrt(p.max_acceleration * p.comfortable_braking))
+        # IDM over-brakes on short gaps; beyond the firm braking the shield decides how hard
+        return max(p.max_acceleration * (free - (max(wanted, 0.0) / max(gap, 0.1)) ** 2), -p.firm_braking)
+
+    def acceleration(self, vehicle: VehicleState, snapshot: TrafficSnapshot, lane: int | None = None) -> float:
+        """IDM acceleration of the vehicle behind its leader in ``lane`` (default: its own)."""
+        ahead = self.shield.leader(vehicle, vehicle.lane_index if lane is None else lane, snapshot)
+        leader = ahead.leader
+        return self.idm(vehicle.speed, self.desired_speed(vehicle), ahead.leader_gap if leader else None,
+                        leader.speed if leader else 0.0)
+
+    def urgency(self, vehicle: VehicleState) -> float:
+        """0 far from the diverge where the lane must be reached, rising to 1 at its last metres."""
+        deadline_edge = 'Highway_0' if vehicle.position < self.geometry.merge_done_at['Highway_0'] else 'Highway_1'
+        remaining = self.geometry.diverge_at[deadline_edge] - self.geometry.commit_distance - vehicle.position
+        return float(np.clip(1.0 - remaining / self.idm_parameters.urgency_distance, 0.0, 1.0))
+
+    def change_is_acceptable(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot) -> bool:
+        """MOBIL's safety criterion: after the change neither the CAV nor its new follower has
+        to brake harder than the accepted braking, which grows from the comfortable one to the
+        urgent one as the diverge nears."""
+        lane = vehicle.lane_index + lane_change
+        p = self.idm_parameters
+        limit = -(p.comfortable_braking + (p.urgent_braking - p.comfortable_braking) * self.urgency(vehicle))
+        if self.acceleration(vehicle, snapshot, lane) < limit:
+            return False
+        around = snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+                                     exclude=vehicle.vehicle_id)
+        follower = around.follower
+        if follower is None:
+            return True
+        return self.idm(follower.speed, follower.lane_speed_limit, around.follower_gap, vehicle.speed) >= limit
+
+    def preferred(self, vehicle: VehicleState, snapshot: TrafficSnapshot) -> tuple[int, float]:
+        """(lane change, acceleration) the rules want, before any mask."""
+        target = self.target_lane(vehicle)
+        lane_change = int(np.sign(target - vehicle.lane_index)) if vehicle.on_highway else 0
+        if lane_change and self.change_is_acceptable(vehicle, lane_change, snapshot):
+            return lane_change, min(self.acceleration(vehicle, snapshot),
+                                    self.acceleration(vehicle, snapshot, vehicle.lane_index + lane_change))
+        accel = self.acceleration(vehicle, snapshot)
+        if lane_change:
+            accel = self.gap_search(vehicle, lane_change, snapshot, accel)
+        return 0, accel
+
+    def gap_search(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot,
+                   accel: float) -> float:
+        """While a lane change is blocked: drop back behind a target-lane vehicle beside or just
+        ahead, or pull ahead of one just behind when the own lane has room."""
+        around = snapshot.neighbours(('Highway', vehicle.lane_index + lane_change), vehicle.position,
+                                     vehicle.length, exclude=vehicle.vehicle_id)
+        search = self.idm_parameters.gap_search_braking * (1.0 + self.urgency(vehicle))
+        if around.follower is not None and around.follower_gap < around.leader_gap and accel > search:
+            return accel   # the blocker is behind and the own lane has room: keep pulling ahead
+        return accel - search
+
+    def choose(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> int:
+        """Best allowed action: the wanted lane change if allowed, else keep lane; the closest
+        allowed acceleration not above the wanted one, else the smallest allowed above it."""
+        grid = self.grid
+        lane_change, wanted = self.preferred(vehicle, snapshot)
+        for change in ([lane_change, 0] if lane_change else [0]):
+            rows = mask & (grid.lane_change_of == change)
+            if not rows.any():
+                continue
+            below = rows & (grid.acceleration_of <= wanted + 1e-9)
+            pool = below if below.any() else rows
+            candidates = np.flatnonzero(pool)
+            distance = np.abs(grid.acceleration_of[candidates] - wanted)
+            return int(candidates[np.argmin(distance)])
+        return int(np.flatnonzero(mask)[0])
+
+    def decide(self, vehicles: Sequence[VehicleState], cav_ids: Sequence[str]) -> Decision:
+        snapshot = TrafficSnapshot(vehicles)
+        return self.shield.decide(
+            vehicles, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
+            preferred=lambda vehicle: self.grid.index(*self.preferred(vehicle, snapshot)))

@@ -1,0 +1,139 @@
+"""Action masks that are also the runtime safety shield (SPEC section 4).
+
+The same masks run in training, evaluation and the decision node, from vehicle states only.
+For one decision, CAVs are taken front to back; each gets a mask over the action grid and
+chooses (``Shield.decide``), and a chosen lane change reserves its gap: the CAV is added as
+a virtual vehicle in the target lane for the CAVs that decide after it.
+
+Masks (each but the first a config switch):
+- lanes that do not exist, and lane changes where the lane held picks the exit;
+- a lane change into a gap with a vehicle too close ahead or behind, or one that would need
+  braking at the hard-braking threshold (``lane_gap``);
+- two CAVs claiming the same gap in one decision (``gap_reservation``);
+- an acceleration after which the CAV, holding it for one decision interval, could no longer
+  stop behind its leader if the leader braked at its maximum (``stop_capable``);
+- braking harder than the threshold with a human follower close behind (``human_follower_braking``).
+If every action is masked, the strongest keep-lane braking is allowed (the safest left).
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from exit_decision.actions import ActionGrid
+from exit_decision.config import ShieldConfig
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.scenario.sumo_inputs import DIVERGES
+from exit_decision.traffic import TrafficSnapshot, VehicleState
+
+#: chooses an action index for a vehicle, given its mask over the grid
+Chooser = Callable[[VehicleState, np.ndarray], int]
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    actions: dict[str, int]              # vehicle id -> chosen action index
+    masks: dict[str, np.ndarray]         # vehicle id -> the mask it chose under
+    overridden: int                      # how many CAVs' unmasked first choice was masked
+
+
+class Shield:
+    def __init__(self, config: ShieldConfig, grid: ActionGrid, geometry: RoadGeometry, decision_time: float):
+        self.config = config
+        self.grid = grid
+        self.geometry = geometry
+        self.horizon = decision_time            # [s] an action is held this long
+        self.fallback = grid.index(0, grid.accelerations.min())
+
+    # --- one vehicle -----------------------------------------------------------------------
+
+    def leader(self, vehicle: VehicleState, lane: int, snapshot: TrafficSnapshot):
+        """Closest vehicle ahead in ``lane`` (a ramp in lane 0 before its diverge counts too)."""
+        if not vehicle.on_highway:
+            return snapshot.neighbours(vehicle.corridor, vehicle.position, vehicle.length,
+                                       exclude=vehicle.vehicle_id)
+        options = [snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+                                       exclude=vehicle.vehicle_id)]
+        if lane == 0 and vehicle.edge_id in DIVERGES:
+            options.append(snapshot.neighbours((DIVERGES[vehicle.edge_id], 0), vehicle.position,
+                                               vehicle.length, exclude=vehicle.vehicle_id))
+        return min(options, key=lambda n: n.leader_gap)
+
+    def stop_capable(self, vehicle: VehicleState, gap: float, leader_speed: float) -> np.ndarray:
+        """Per acceleration of the grid: can the CAV still stop behind a leader braking at its
+        maximum, after holding that acceleration for one decision interval?"""
+        c, t = self.config, self.horizon
+        a = self.grid.accelerations
+        v = vehicle.speed
+        stops_within = v + a * t < 0
+        with np.errstate(divide='ignore', invalid='ignore'):
+            travel = np.where(stops_within, v * v / (2 * np.maximum(-a, 1e-9)), v * t + 0.5 * a * t * t)
+        speed_after = np.maximum(v + a * t, 0.0)
+        b = c.leader_max_braking
+        leader_travel = leader_speed * leader_speed / (2 * b) if leader_speed < b * t else \
+            leader_speed * t - 0.5 * b * t * t
+        leader_after = max(leader_speed - b * t, 0.0)
+        gap_after = gap + leader_travel - travel
+        needed = speed_after ** 2 / (2 * c.ego_max_braking) - leader_after ** 2 / (2 * b) + c.stop_margin
+        return gap_after >= needed
+
+    def mask(self, vehicle: VehicleState, snapshot: TrafficSnapshot) -> np.ndarray:
+        """(A,) bool: the actions this CAV may take now."""
+        c, grid = self.config, self.grid
+        allowed = np.zeros(grid.size, dtype=bool)
+        for lane_change in grid.lane_changes:
+            rows = grid.lane_change_of == lane_change
+            if not self.geometry.lane_change_exists(vehicle, lane_change):
+                continue
+            lane = vehicle.lane_index + lane_change
+            ok = np.ones(len(grid.accelerations), dtype=bool)
+            around = (snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+                                          exclude=vehicle.vehicle_id) if vehicle.on_highway
+                      else snapshot.neighbours_of(vehicle))
+            if lane_change and c.lane_gap:
+                closing = max(around.follower.speed - vehicle.speed, 0.0) if around.follower else 0.0
+                if (around.leader_gap < c.gap_front
+                        or around.follower_gap < c.gap_back + c.gap_back_time * closing):
+                    continue
+                ok &= grid.accelerations > c.hard_braking   # a gap that needs hard braking is too small
+            if c.stop_capable:
+                ahead = self.leader(vehicle, lane, snapshot)
+                if ahead.leader is not None:
+                    ok &= self.stop_capable(vehicle, ahead.leader_gap, ahead.leader.speed)
+            if c.human_follower_braking and around.follower is not None \
+                    and not around.follower.is_cav and around.follower_gap < c.human_follower_distance:
+                ok &= grid.accelerations > c.hard_braking
+            allowed[rows] = ok
+        if not allowed.any():
+            allowed[self.fallback] = True
+        return allowed
+
+    # --- a decision for all CAVs ---------------------------------------------------------------
+
+    def decide(self, vehicles: Sequence[VehicleState], cav_ids: Sequence[str], choose: Chooser,
+               preferred: Callable[[VehicleState], int] | None = None) -> Decision:
+        """Masks and choices for the given CAVs, front to back, reserving chosen gaps.
+
+        ``preferred`` (optional) is the choice without masks, to count overrides."""
+        snapshot = TrafficSnapshot(vehicles)
+        present = [snapshot.by_id[vid] for vid in cav_ids]
+        actions, masks, overridden = {}, {}, 0
+        virtual: list[VehicleState] = []
+        for vehicle in sorted(present, key=lambda v: -v.position):
+            mask = self.mask(vehicle, snapshot)
+            action = choose(vehicle, mask)
+            if not mask[action]:
+                raise ValueError(f'{vehicle.vehicle_id}: the chooser picked masked action {action}')
+            if preferred is not None and not mask[preferred(vehicle)]:
+                overridden += 1
+            actions[vehicle.vehicle_id], masks[vehicle.vehicle_id] = action, mask
+            lane_change = int(self.grid.lane_change_of[action])
+            if lane_change and self.config.gap_reservation:
+                virtual.append(dataclasses.replace(
+                    vehicle, vehicle_id=f'{vehicle.vehicle_id}#reserved',
+                    lane_index=vehicle.lane_index + lane_change))
+                snapshot = TrafficSnapshot([*vehicles, *virtual])
+        return Decision(actions, masks, overridden)
