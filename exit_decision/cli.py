@@ -9,6 +9,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from exit_decision.config import ConfigError, load_project
+from exit_decision.errors import PolicyError
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -66,6 +67,31 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train one decision mode with GQN or MDGQN; writes policy.pt, logs and config."""
+    from exit_decision.learning.trainer import Trainer
+
+    config = load_project(args.config_dir, args.scenario_override)
+    config.mode(args.mode)
+    episodes = args.episodes or config.training.episodes
+    out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
+    trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir)
+    policy = trainer.run(episodes, resume=args.resume)
+    print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate policies and/or the reference drivers on fixed seeds; print and save the table."""
+    from exit_decision.evaluation.report import evaluate_runs
+
+    config = load_project(args.config_dir, args.scenario_override)
+    table = evaluate_runs(config, policies=args.policy, drivers=args.driver, episodes=args.episodes,
+                          seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
+    print(table)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from exit_decision.benchmarks import bench_simulation
     print(bench_simulation(load_project(args.config_dir, args.scenario_override), args.episodes, args.seed))
@@ -90,6 +116,27 @@ def build_parser() -> argparse.ArgumentParser:
                      help='write the table with the command and the full configuration here')
     run.set_defaults(func=cmd_run)
 
+    train = commands.add_parser('train', help='train a decision mode with GQN or MDGQN')
+    _common(train)
+    train.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
+    train.add_argument('--mode', default='CONP', help='a mode of config/modes.yaml')
+    train.add_argument('--episodes', type=int, default=None, help='default: config/training.yaml')
+    train.add_argument('--seed', type=int, default=0)
+    train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
+    train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')
+    train.set_defaults(func=cmd_train)
+
+    evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
+    _common(evaluate)
+    evaluate.add_argument('--policy', type=Path, action='append', default=[], help='a policy.pt (repeatable)')
+    evaluate.add_argument('--driver', action='append', default=[], choices=['sumo', 'rule_based'],
+                          help='a reference driver (repeatable)')
+    evaluate.add_argument('--episodes', type=int, default=50)
+    evaluate.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
+    evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
+                          help='directory for the CSV and Markdown tables')
+    evaluate.set_defaults(func=cmd_evaluate)
+
     bench = commands.add_parser('bench', help='print simulation throughput, libsumo vs TraCI')
     _common(bench)
     bench.add_argument('--episodes', type=int, default=2)
@@ -102,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except ConfigError as error:
+    except (ConfigError, PolicyError) as error:
         print(f'exit-decision: {error}', file=sys.stderr)
         return 2
 

@@ -99,7 +99,7 @@ class ScenarioConfig(Strict):
 class GraphConfig(Strict):
     max_vehicles: Annotated[int, Field(gt=0)]
     sensing_range: PositiveFloat
-    feature_set: Literal['paper']
+    feature_set: Literal['paper', 'relative']
 
 
 # --- reward and modes -------------------------------------------------------------------
@@ -199,6 +199,60 @@ class EnvConfig(Strict):
     mode: str
 
 
+# --- training -------------------------------------------------------------------------------
+
+class NetworkConfig(Strict):
+    encoder: Annotated[int, Field(gt=0)]
+    gcn: Annotated[int, Field(gt=0)]
+    head: Annotated[int, Field(gt=0)]
+
+
+class AlgorithmConfig(Strict):
+    multi_step: Annotated[int, Field(ge=1)]
+
+
+class ExplorationConfig(Strict):
+    epsilon_start: Probability
+    epsilon_end: Probability
+    epsilon_decay_episodes: Annotated[int, Field(ge=1)]
+    keep_lane_probability: Probability
+    acceleration_std: Annotated[float, Field(ge=0)]
+
+
+class DemonstrationConfig(Strict):
+    episodes: Annotated[int, Field(ge=0)]
+    batch_share: Annotated[float, Field(ge=0, lt=1)]
+    margin: Annotated[float, Field(ge=0)]
+    margin_weight_start: Annotated[float, Field(ge=0)]
+    margin_weight_end: Annotated[float, Field(ge=0)]
+    margin_decay_episodes: Annotated[int, Field(ge=1)]
+    pretrain_updates: Annotated[int, Field(ge=0)]
+
+
+class ValidationConfig(Strict):
+    every_episodes: Annotated[int, Field(ge=1)]
+    episodes: Annotated[int, Field(ge=1)]
+    collision_weight: Annotated[float, Field(ge=0)]
+
+
+class TrainingConfig(Strict):
+    episodes: Annotated[int, Field(ge=1)]
+    gamma: Annotated[float, Field(gt=0, le=1)]
+    learning_rate: PositiveFloat
+    tau: Annotated[float, Field(gt=0, le=1)]
+    batch_size: Annotated[int, Field(ge=1)]
+    replay_size: Annotated[int, Field(ge=1)]
+    warmup_decisions: Annotated[int, Field(ge=0)]
+    updates_per_decision: Annotated[int, Field(ge=0)]
+    gradient_clip: PositiveFloat
+    reward_scale: PositiveFloat
+    network: NetworkConfig
+    algorithms: dict[Literal['gqn', 'mdgqn'], AlgorithmConfig]
+    exploration: ExplorationConfig
+    demonstrations: DemonstrationConfig
+    validation: ValidationConfig
+
+
 # --- loading ----------------------------------------------------------------------------
 
 def default_config_dir() -> Path:
@@ -274,6 +328,7 @@ class ProjectConfig(BaseModel):
     env: EnvConfig
     modes: dict[str, ModeConfig]
     rewards: dict[str, MatrixRewardConfig | BaselineRewardConfig]
+    training: TrainingConfig
 
     def mode(self, name: str) -> ModeConfig:
         if name not in self.modes:
@@ -295,6 +350,7 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
         env=load(EnvConfig, directory / 'env.yaml'),
         modes=load(ModesConfig, directory / 'modes.yaml').modes,
         rewards=load(RewardConfig, directory / 'reward.yaml').variants,
+        training=load(TrainingConfig, directory / 'training.yaml'),
     )
     config.mode(config.env.mode)
     config.reward(config.env.reward_variant)

@@ -44,7 +44,7 @@ class ExitDecisionEnv(gym.Env):
                                      config.mode(self.mode), scenario.emergency_braking_threshold)
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
         self.observation_space = spaces.Dict({
-            'features': spaces.Box(0.0, np.inf, (n, f), np.float32),
+            'features': spaces.Box(-1.0, np.inf, (n, f), np.float32),
             'adjacency': spaces.MultiBinary((n, n)),
             'cav_mask': spaces.MultiBinary(n),
         })

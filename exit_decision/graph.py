@@ -10,6 +10,11 @@ policy sees in ROS exactly what it saw in training.
 - Adjacency (0/1, symmetric): each vehicle with itself; every CAV with every CAV; a CAV
   with an HV within the sensing range (longitudinal, any lane); never HV with HV.
 - CAV mask: 1 on CAV rows.
+
+The ``relative`` feature set (ours, SPEC section 4) adds, for the lane to the right, the own
+lane and the lane to the left: the bumper gap to the leader and to the follower (/ 50 m,
+capped at 1; a lane that does not exist has gap 0) and their speed relative to the vehicle
+(/ 10 m/s, clipped to [-1, 1]). The paper's absolute positions cannot resolve gaps.
 """
 from __future__ import annotations
 
@@ -19,11 +24,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from exit_decision.config import GraphConfig
-from exit_decision.traffic import INTENTION_LEFT, INTENTION_RIGHT, VehicleState
+from exit_decision.traffic import INTENTION_LEFT, INTENTION_RIGHT, TrafficSnapshot, VehicleState
 
 PAPER_FEATURES = ('speed', 'position', 'lane_0', 'lane_1', 'lane_2',
                   'intention_left', 'intention_right', 'intention_keep')
-FEATURE_SETS = {'paper': PAPER_FEATURES}
+#: lanes relative to the vehicle's own, for the relative features
+LANE_OFFSETS = {'right': -1, 'own': 0, 'left': 1}
+RELATIVE_FEATURES = PAPER_FEATURES + tuple(
+    f'{side}_{what}' for side in LANE_OFFSETS
+    for what in ('leader_gap', 'leader_speed', 'follower_gap', 'follower_speed'))
+FEATURE_SETS = {'paper': PAPER_FEATURES, 'relative': RELATIVE_FEATURES}
+GAP_SCALE = 50.0     # [m] gaps are divided by this and capped at 1 (no vehicle = 1)
+SPEED_SCALE = 10.0   # [m/s] relative speeds are divided by this and clipped to [-1, 1]
 
 
 class GraphCapacityError(RuntimeError):
@@ -52,6 +64,7 @@ class GraphBuilder:
                  lane_count: int = 3):
         if lane_count != 3:
             raise ValueError(f'the paper feature set has a 3-lane one-hot; got lane_count={lane_count}')
+        self.lane_count = lane_count
         self.config = config
         self.road_length = road_length
         self.speed_scale = speed_scale
@@ -110,6 +123,26 @@ class GraphBuilder:
             np.fill_diagonal(links, True)
             adjacency[np.ix_(rows, rows)] = links
             cav_mask[rows] = is_cav
+            if self.config.feature_set == 'relative':
+                features[rows, len(PAPER_FEATURES):] = self.relative_features(vehicles)
             for row, vehicle in zip(rows, vehicles):
                 ids[row] = vehicle.vehicle_id
         return TrafficGraph(features, adjacency, cav_mask, tuple(ids))
+
+    def relative_features(self, vehicles: Sequence[VehicleState]) -> np.ndarray:
+        snapshot = TrafficSnapshot(vehicles)
+        result = np.zeros((len(vehicles), 4 * len(LANE_OFFSETS)), dtype=np.float32)
+        for i, vehicle in enumerate(vehicles):
+            for j, offset in enumerate(LANE_OFFSETS.values()):
+                lane = vehicle.lane_index + offset
+                if offset and not (vehicle.on_highway and 0 <= lane < self.lane_count):
+                    continue   # no such lane: gaps 0, speeds 0
+                around = snapshot.neighbours_of(vehicle, lane_offset=offset)
+                cells = result[i, 4 * j:4 * j + 4]
+                cells[0] = min(max(around.leader_gap, 0.0) / GAP_SCALE, 1.0)
+                cells[2] = min(max(around.follower_gap, 0.0) / GAP_SCALE, 1.0)
+                if around.leader is not None:
+                    cells[1] = np.clip((around.leader.speed - vehicle.speed) / SPEED_SCALE, -1, 1)
+                if around.follower is not None:
+                    cells[3] = np.clip((around.follower.speed - vehicle.speed) / SPEED_SCALE, -1, 1)
+        return result

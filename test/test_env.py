@@ -22,7 +22,7 @@ def test_a_decision_holds_for_the_interval_and_sums_the_reward(env, project_conf
     keep = env.actions.index(0, 0.0)
     while not env.graph.cav_mask.any():
         observation, _, _, _, info = env.step(np.full(env.graph.num_nodes, keep))
-    assert observation['features'].shape == (60, 8)
+    assert observation['features'].shape == (60, env.graph_builder.num_features)
     row = int(env.graph.cav_rows()[0])
     vehicle_id = env.graph.vehicle_ids[row]
     speed = env.sim.snapshot.by_id[vehicle_id].speed

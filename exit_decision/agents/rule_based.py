@@ -16,6 +16,7 @@ import numpy as np
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Decision, Shield
+from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -136,8 +137,9 @@ class RuleBasedDriver:
             return int(candidates[np.argmin(distance)])
         return int(np.flatnonzero(mask)[0])
 
-    def decide(self, vehicles: Sequence[VehicleState], cav_ids: Sequence[str]) -> Decision:
+    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
         snapshot = TrafficSnapshot(vehicles)
+        cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
         return self.shield.decide(
             vehicles, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
             preferred=lambda vehicle: self.grid.index(*self.preferred(vehicle, snapshot)))

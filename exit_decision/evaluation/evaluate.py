@@ -10,13 +10,14 @@ from tqdm import tqdm
 
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
+from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VehicleState
 
 
 class Controller(Protocol):
     name: str
 
-    def decide(self, vehicles: Sequence[VehicleState], cav_ids: Sequence[str]) -> Decision: ...
+    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision: ...
 
 
 @dataclass
@@ -38,7 +39,7 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
     while not done:
         action = np.full(env.graph.num_nodes, keep)
         if controller is not None:
-            decision = controller.decide(env.sim.snapshot.vehicles, env.cav_ids())
+            decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
             row_of = {vid: row for row, vid in enumerate(env.graph.vehicle_ids) if vid}
             for vehicle_id, index in decision.actions.items():
                 action[row_of[vehicle_id]] = index

@@ -1,0 +1,97 @@
+"""GQN and MDGQN updates on graph batches (paper 000 Section 3; SPEC section 4).
+
+Every CAV row is a Q-learner with shared weights and the shared reward. For a row i that
+acted at t, with R the m-step return and gamma^K the window's discount:
+- GQN:   y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_target(s')_i
+- MDGQN: y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_online(s')_i
+(the m of the window is a training setting: 1 for GQN, 3 for MDGQN by default). A row whose
+vehicle left (or the episode ended) has no bootstrap. Demonstration rows add DQfD's
+large-margin loss max_a [Q(s,a) + l(a, a_E)] - Q(s, a_E) over the allowed actions.
+Target networks follow by soft update: theta- <- tau theta + (1 - tau) theta-.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from exit_decision.learning.networks import GraphQNetwork, NetworkShape
+
+Algorithm = Literal['gqn', 'mdgqn']
+
+
+@dataclass(frozen=True)
+class UpdateSettings:
+    algorithm: Algorithm
+    learning_rate: float
+    tau: float
+    margin: float          # l(a, a_E) for a != a_E
+    gradient_clip: float
+
+
+class GraphQAgent:
+    def __init__(self, shape: NetworkShape, settings: UpdateSettings, seed: int):
+        torch.manual_seed(seed)
+        self.settings = settings
+        self.online = GraphQNetwork(shape)
+        self.target = copy.deepcopy(self.online).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=settings.learning_rate)
+
+    def soft_update(self) -> None:
+        tau = self.settings.tau
+        with torch.no_grad():
+            for target, online in zip(self.target.parameters(), self.online.parameters()):
+                target.mul_(1.0 - tau).add_(online, alpha=tau)
+
+    @staticmethod
+    def masked_argmax(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return q.masked_fill(~mask, -torch.inf).argmax(-1)
+
+    def td_targets(self, batch: dict[str, torch.Tensor], rows: torch.Tensor) -> torch.Tensor:
+        b, r = rows[:, 0], rows[:, 1]
+        next_mask = batch['next_masks'][b, r]
+        alive = batch['alive'][b, r] & next_mask.any(-1)
+        target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows)
+        if self.settings.algorithm == 'mdgqn':
+            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows)
+        else:
+            chooser = target_q
+        best = self.masked_argmax(chooser, next_mask)
+        bootstrap = target_q.gather(1, best.unsqueeze(1)).squeeze(1)
+        bootstrap = torch.where(alive, bootstrap, torch.zeros_like(bootstrap))
+        return batch['returns'][b] + batch['discounts'][b] * bootstrap
+
+    def losses(self, batch: dict[str, torch.Tensor], demo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(TD loss, margin loss) means over the acting rows (margin: demonstration rows only)."""
+        rows = torch.nonzero(batch['actions'] >= 0)
+        b, r = rows[:, 0], rows[:, 1]
+        actions = batch['actions'][b, r]
+        q = self.online.cav_q_values(batch['features'], batch['adjacency'], rows)
+        q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
+        with torch.no_grad():
+            targets = self.td_targets(batch, rows)
+        td = nn.functional.smooth_l1_loss(q_taken, targets)
+        demo_rows = demo[b]
+        if not demo_rows.any():
+            return td, torch.zeros((), dtype=td.dtype)
+        margins = torch.full_like(q, self.settings.margin)
+        margins.scatter_(1, actions.unsqueeze(1), 0.0)
+        allowed = batch['masks'][b, r]
+        best = (q + margins).masked_fill(~allowed, -torch.inf).max(1).values
+        margin_loss = (best - q_taken)[demo_rows].mean()
+        return td, margin_loss
+
+    def update(self, batch: dict[str, np.ndarray], demo: np.ndarray, margin_weight: float) -> dict[str, float]:
+        tensors = {key: torch.from_numpy(value) for key, value in batch.items()}
+        td, margin = self.losses(tensors, torch.from_numpy(demo))
+        loss = td + margin_weight * margin
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.online.parameters(), self.settings.gradient_clip)
+        self.optimizer.step()
+        self.soft_update()
+        return {'loss': loss.item(), 'td_loss': td.item(), 'margin_loss': margin.item()}

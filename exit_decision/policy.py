@@ -1,0 +1,117 @@
+"""Policy checkpoints and greedy inference, used by evaluation and the decision node.
+
+A checkpoint is self-describing: the network's state_dict plus plain-data metadata (network
+shape, action grid, decision interval, feature set, N, mode, algorithm, seed, git revision,
+training summary), so it loads with ``torch.load(weights_only=True)`` and rebuilds its own
+network. ``GraphPolicy.q_values`` runs all rows of a graph in one forward pass;
+``PolicyController`` chooses, per CAV, the best action the shield allows.
+"""
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.shield import Decision, Shield
+from exit_decision.config import ActionGridConfig, ConfigError
+from exit_decision.errors import PolicyError
+from exit_decision.graph import TrafficGraph
+from exit_decision.learning.networks import GraphQNetwork, NetworkShape
+from exit_decision.traffic import VehicleState
+
+CHECKPOINT_FORMAT = 'exit_decision.policy/1'
+
+
+def git_revision() -> str:
+    try:
+        result = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parent, check=False, timeout=5)
+    except (OSError, subprocess.TimeoutExpired):
+        return 'unknown'
+    return result.stdout.strip() or 'unknown'
+
+
+def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) -> None:
+    """Write a checkpoint; ``metadata`` must be plain data (str, numbers, lists, dicts)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(path.suffix + '.tmp')
+    torch.save({'format': CHECKPOINT_FORMAT, 'network': network.shape.to_dict(),
+                'state_dict': network.state_dict(), 'metadata': metadata}, temporary)
+    temporary.replace(path)
+
+
+@torch.no_grad()
+def q_values(network: GraphQNetwork, graph: TrafficGraph) -> np.ndarray:
+    """(N, A) Q values of every row of one graph in one forward pass (rows that are not
+    CAVs are computed but meaningless)."""
+    features = torch.from_numpy(np.ascontiguousarray(graph.features)).unsqueeze(0)
+    adjacency = torch.from_numpy(np.ascontiguousarray(graph.adjacency)).unsqueeze(0)
+    return network(features, adjacency)[0].numpy()
+
+
+class GraphPolicy:
+    def __init__(self, path: Path, network: GraphQNetwork, metadata: dict[str, Any]):
+        self.path = path
+        self.network = network.eval()
+        self.metadata = metadata
+        self.grid = ActionGrid(ActionGridConfig(**metadata['action_grid']))
+
+    @property
+    def label(self) -> str:
+        return f'{self.metadata.get("algorithm", "?")}/{self.metadata.get("mode", "?")}'
+
+    def check_compatible(self, num_nodes: int, feature_set: str, decision_interval: int,
+                         grid: ActionGrid) -> None:
+        """Raise PolicyError when the policy was trained for other graphs or actions."""
+        expected = {'num_nodes': num_nodes, 'feature_set': feature_set, 'decision_interval': decision_interval}
+        for key, value in expected.items():
+            if self.metadata.get(key) != value:
+                raise PolicyError(f'{self.path}: trained with {key}={self.metadata.get(key)!r}, '
+                                  f'the configuration has {value!r}')
+        if grid.size != self.grid.size or not np.allclose(grid.accelerations, self.grid.accelerations):
+            raise PolicyError(f'{self.path}: its action grid differs from the configured one')
+
+    def q_values(self, graph: TrafficGraph) -> np.ndarray:
+        return q_values(self.network, graph)
+
+
+def load_policy(path: Path | str) -> GraphPolicy:
+    path = Path(path)
+    if not path.is_file():
+        raise PolicyError(f'{path}: no such policy file')
+    try:
+        data = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged file
+        raise PolicyError(f'{path}: not a readable policy checkpoint ({type(error).__name__}: {error})') from None
+    if not isinstance(data, dict) or data.get('format') != CHECKPOINT_FORMAT:
+        raise PolicyError(f'{path}: not an {CHECKPOINT_FORMAT} checkpoint')
+    try:
+        network = GraphQNetwork(NetworkShape(**data['network']))
+        network.load_state_dict(data['state_dict'])
+        return GraphPolicy(path, network, data['metadata'])
+    except (KeyError, TypeError, RuntimeError, ConfigError) as error:
+        raise PolicyError(f'{path}: checkpoint content does not fit ({error})') from None
+
+
+class PolicyController:
+    """Greedy decisions of a policy under the shield (what evaluation and the node run)."""
+
+    def __init__(self, policy: GraphPolicy, shield: Shield):
+        torch.set_num_threads(1)   # one small forward per decision: threads only add contention
+        self.policy = policy
+        self.shield = shield
+        self.name = policy.label
+
+    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
+        q = self.policy.q_values(graph)
+        row_of = {vehicle_id: row for row, vehicle_id in enumerate(graph.vehicle_ids) if vehicle_id}
+        cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
+        return self.shield.decide(
+            vehicles, cav_ids,
+            choose=lambda vehicle, mask: int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax()),
+            preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))

@@ -1,0 +1,165 @@
+"""Networks, m-step targets, double-Q choice, soft update and checkpoints on hand-made data."""
+import numpy as np
+import pytest
+import torch
+
+from exit_decision.graph import TrafficGraph
+from exit_decision.learning.agent import GraphQAgent, UpdateSettings
+from exit_decision.learning.networks import GraphQNetwork, NetworkShape, normalize_adjacency
+from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer
+from exit_decision.policy import PolicyError, load_policy, save_policy
+
+A = 4
+
+
+def test_gcn_normalisation_on_a_hand_made_graph():
+    adjacency = torch.tensor([[[1, 1, 0], [1, 1, 1], [0, 1, 1]]], dtype=torch.float32)
+    degree = torch.tensor([2.0, 3.0, 2.0])
+    expected = adjacency[0] / torch.sqrt(degree[:, None] * degree[None, :])
+    torch.testing.assert_close(normalize_adjacency(adjacency)[0], expected)
+    empty_row = torch.tensor([[[1, 0], [0, 0]]], dtype=torch.float32)
+    assert normalize_adjacency(empty_row)[0, 1].abs().sum() == 0, 'absent rows stay zero'
+
+
+def test_q_network_shapes_and_that_n_is_free():
+    net = GraphQNetwork(NetworkShape(num_features=5, num_actions=A))
+    for n in (3, 60):
+        q = net(torch.rand(2, n, 5), torch.eye(n).expand(2, n, n))
+        assert q.shape == (2, n, A)
+    rows = torch.tensor([[0, 1], [1, 2]])
+    features, adjacency = torch.rand(2, 3, 5), torch.ones(2, 3, 3)
+    torch.testing.assert_close(net.cav_q_values(features, adjacency, rows), net(features, adjacency)[rows[:, 0], rows[:, 1]])
+
+
+def test_an_isolated_row_is_not_influenced_by_others():
+    net = GraphQNetwork(NetworkShape(num_features=3, num_actions=A))
+    features = torch.rand(1, 3, 3)
+    isolated = torch.eye(3).unsqueeze(0)
+    q1 = net(features, isolated)
+    features2 = features.clone()
+    features2[0, 1:] = torch.rand(2, 3)
+    torch.testing.assert_close(net(features2, isolated)[0, 0], q1[0, 0])
+
+
+def graph(ids, n=3, f=2, cavs=None):
+    cav_mask = np.array([bool(i) for i in ids]) if cavs is None else np.array(cavs)
+    return TrafficGraph(np.full((n, f), len(ids[0]), np.float32), np.eye(n, dtype=np.uint8), cav_mask, tuple(ids))
+
+
+def record(ids, reward, actions=(0, NO_ACTION, NO_ACTION)):
+    return DecisionRecord(graph(ids), np.array(actions), np.ones((3, A), bool), reward)
+
+
+def test_m_step_target_with_an_episode_end_inside_the_window():
+    gamma = 0.5
+    acc = EpisodeAccumulator(steps=3, gamma=gamma)
+    ids = ('a', '', '')
+    assert acc.add(record(ids, 1.0)) == []
+    assert acc.add(record(ids, 2.0)) == []
+    assert acc.add(record(ids, 4.0)) == []
+    first = acc.add(record(('b', '', ''), 8.0))         # t=0 -> t=3 complete
+    assert len(first) == 1
+    assert first[0].ret == pytest.approx(1 + 0.5 * 2 + 0.25 * 4)
+    assert first[0].discount == pytest.approx(0.125)
+    assert not first[0].alive[0], 'row 0 holds another vehicle at t+3: terminal for a'
+    rest = acc.finish(DecisionRecord(graph(('b', '', '')), np.full(3, NO_ACTION), np.ones((3, A), bool)),
+                      terminated=True)
+    assert [round(t.ret, 6) for t in rest] == [2 + 0.5 * 4 + 0.25 * 8, 4 + 0.5 * 8, 8.0]
+    assert all(t.discount == 0.0 for t in rest), 'no bootstrap past the episode end'
+    assert rest[2].alive[0], 'b is still there: only the episode end stops the bootstrap'
+
+
+def test_truncated_episode_still_bootstraps():
+    acc = EpisodeAccumulator(steps=3, gamma=0.5)
+    acc.add(record(('a', '', ''), 1.0))
+    (last,) = acc.finish(record(('a', '', ''), 0.0), terminated=False)
+    assert last.discount == 0.5 and last.alive[0]
+
+
+def make_batch(next_q_rows_alive=True):
+    buffer = ReplayBuffer(4, num_nodes=3, num_features=2, num_actions=A)
+    acc = EpisodeAccumulator(steps=1, gamma=0.9)
+    acc.add(record(('a', '', ''), 1.0))
+    mask = np.ones((3, A), bool)
+    mask[0, 0] = False
+    final = DecisionRecord(graph(('a' if next_q_rows_alive else 'z', '', '')), np.full(3, NO_ACTION), mask)
+    (transition,) = acc.finish(final, terminated=False)
+    buffer.add(transition)
+    return buffer.sample(np.array([0]))
+
+
+class FixedNet(torch.nn.Module):
+    """Q(s)[row] = the given vector, whatever the input."""
+
+    def __init__(self, values):
+        super().__init__()
+        self.values = torch.tensor(values, dtype=torch.float32)
+
+    def cav_q_values(self, features, adjacency, rows):
+        return self.values.expand(len(rows), A)
+
+
+def agent_with(algorithm, online_values, target_values):
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings(algorithm, 1e-3, 0.05, 0.8, 10.0), seed=0)
+    agent.online, agent.target = FixedNet(online_values), FixedNet(target_values)
+    return agent
+
+
+@pytest.mark.parametrize('algorithm, expected_bootstrap', [
+    ('gqn', 7.0),      # the target net picks its own best allowed action (index 2: 7) and evaluates it
+    ('mdgqn', 5.0),    # the online net picks (index 3), the target net evaluates it (5)
+])
+def test_double_q_action_choice_under_the_next_mask(algorithm, expected_bootstrap):
+    batch = {k: torch.from_numpy(v) for k, v in make_batch().items()}
+    # action 0 is masked at s': its huge values must never be chosen
+    agent = agent_with(algorithm, online_values=[100.0, 0.0, 1.0, 3.0], target_values=[100.0, 1.0, 7.0, 5.0])
+    targets = agent.td_targets(batch, torch.tensor([[0, 0]]))
+    assert targets.item() == pytest.approx(1.0 + 0.9 * expected_bootstrap)
+
+
+def test_a_vehicle_that_left_gets_a_terminal_target():
+    batch = {k: torch.from_numpy(v) for k, v in make_batch(next_q_rows_alive=False).items()}
+    agent = agent_with('mdgqn', [0.0, 0.0, 1.0, 3.0], [0.0, 1.0, 7.0, 5.0])
+    assert agent.td_targets(batch, torch.tensor([[0, 0]])).item() == pytest.approx(1.0)
+
+
+def test_soft_update_moves_the_target_by_tau():
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings('gqn', 1e-3, 0.25, 0.8, 10.0), seed=0)
+    before = [p.clone() for p in agent.target.parameters()]
+    with torch.no_grad():
+        for p in agent.online.parameters():
+            p.add_(1.0)
+    agent.soft_update()
+    for old, new, online in zip(before, agent.target.parameters(), agent.online.parameters()):
+        torch.testing.assert_close(new, 0.75 * old + 0.25 * online)
+
+
+def test_margin_loss_pushes_the_demonstrated_action_up():
+    batch = make_batch()
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings('mdgqn', 1e-2, 0.05, 0.8, 10.0), seed=0)
+    demo = np.array([True])
+    for _ in range(200):
+        stats = agent.update(batch, demo, margin_weight=1.0)
+    q = agent.online(torch.from_numpy(batch['features']), torch.from_numpy(batch['adjacency']))[0, 0]
+    assert int(q.argmax()) == 0, 'the demonstrated action (0) is the greedy one'
+    assert np.isfinite(stats['loss'])
+
+
+def test_checkpoint_round_trip_and_errors(tmp_path):
+    net = GraphQNetwork(NetworkShape(num_features=2, num_actions=A))
+    metadata = {'algorithm': 'mdgqn', 'mode': 'AGGI', 'num_nodes': 3, 'feature_set': 'paper',
+                'decision_interval': 5, 'action_grid': {'lane_changes': [-1, 0, 1], 'acceleration_min': -1.0,
+                                                        'acceleration_max': 0.0, 'acceleration_step': 1.0}}
+    save_policy(tmp_path / 'p.pt', net, metadata)
+    policy = load_policy(tmp_path / 'p.pt')
+    g = graph(('a', 'b', ''))
+    np.testing.assert_allclose(policy.q_values(g), net(torch.from_numpy(g.features)[None],
+                                                       torch.from_numpy(g.adjacency)[None])[0].detach().numpy())
+    assert policy.metadata['mode'] == 'AGGI' and policy.grid.size == 6
+    with pytest.raises(PolicyError, match='no such policy file'):
+        load_policy(tmp_path / 'missing.pt')
+    (tmp_path / 'bad.pt').write_bytes(b'not a checkpoint')
+    with pytest.raises(PolicyError, match='bad.pt: not a readable policy checkpoint'):
+        load_policy(tmp_path / 'bad.pt')
+    with pytest.raises(PolicyError, match='trained with num_nodes=3'):
+        policy.check_compatible(60, 'paper', 5, policy.grid)
