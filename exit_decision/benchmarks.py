@@ -35,3 +35,59 @@ def bench_simulation(config: ProjectConfig, episodes: int, seed: int) -> str:
     ratio = rows['libsumo']['steps_per_s'] / rows['traci']['steps_per_s']
     lines.append(f'libsumo / TraCI speed ratio: {ratio:.1f}x')
     return '\n'.join(lines)
+
+
+def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
+    """Environment steps/s with and without learning, ms per update, inference latency."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from exit_decision.graph import TrafficGraph
+    from exit_decision.learning.trainer import Trainer
+    from exit_decision.policy import q_values
+
+    training = config.training.model_copy(update={
+        'warmup_decisions': 0,
+        'demonstrations': config.training.demonstrations.model_copy(update={'episodes': 1, 'pretrain_updates': 0}),
+        'validation': config.training.validation.model_copy(update={'every_episodes': 10 ** 6})})
+    config = config.model_copy(update={'training': training})
+    lines = [f'learning benchmark ({episodes} episode(s) each, torch threads: 1)']
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(config, 'mdgqn', config.env.mode, seed, Path(tmp))
+        timings = {}
+        for label, updates in (('without learning', 0), ('with learning', training.updates_per_decision)):
+            trainer.training = training.model_copy(update={'updates_per_decision': updates})
+            steps, started = 0, time.perf_counter()
+            for episode in range(episodes):
+                trainer.run_episode(seed + episode, demonstrate=False, epsilon=0.1)
+                steps += trainer.env.episode_log.steps
+            elapsed = time.perf_counter() - started
+            timings[label] = (steps / elapsed, elapsed / episodes)
+            lines.append(f'  env steps/s {label:<17} {steps / elapsed:8.0f}   ({elapsed / episodes:.2f} s per episode)')
+        batch, demo = trainer.sample()
+        for _ in range(10):
+            trainer.agent.update(batch, demo, 1.0)
+        count, started = 200, time.perf_counter()
+        for _ in range(count):
+            trainer.agent.update(batch, demo, 1.0)
+        lines.append(f'  gradient update (batch {training.batch_size}): '
+                     f'{(time.perf_counter() - started) / count * 1000:.2f} ms')
+        n, f = config.graph.max_vehicles, trainer.shape.num_features
+        rng = np.random.default_rng(seed)
+        graph = TrafficGraph(rng.random((n, f), dtype=np.float32), np.ones((n, n), np.uint8),
+                             np.ones(n, bool), tuple(f'CAV_{i}' for i in range(n)))
+        network = trainer.agent.online.eval()
+        samples = []
+        for _ in range(1000):
+            started = time.perf_counter()
+            q_values(network, graph)
+            samples.append((time.perf_counter() - started) * 1000)
+        samples = np.array(samples[50:])
+        lines.append(f'  greedy inference, {n} vehicles all CAVs, one forward: median {np.median(samples):.3f} ms, '
+                     f'p99 {np.percentile(samples, 99):.3f} ms')
+        trainer.env.close()
+    with_learning, without = timings['with learning'][0], timings['without learning'][0]
+    lines.append(f'  learning slows the environment by {without / with_learning:.1f}x')
+    return '\n'.join(lines)

@@ -17,6 +17,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     parser.add_argument('--scenario-override', type=Path, default=None,
                         help='YAML merged over scenario.yaml (a scenario variant)')
+    parser.add_argument('--override', type=Path, action='append', default=[],
+                        help='YAML keyed by config file (env:, graph:, training:, ...) merged over the '
+                             'config (repeatable)')
 
 
 def argv_is_cli() -> bool:
@@ -30,7 +33,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.metrics import markdown_table, summarize
 
-    config = load_project(args.config_dir, args.scenario_override)
+    config = load_project(args.config_dir, args.scenario_override, args.override)
     env = ExitDecisionEnv(config, mode=args.mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
     hold = np.full(config.graph.max_vehicles, env.actions.index(0, 0.0))
     episodes = []
@@ -71,10 +74,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Train one decision mode with GQN or MDGQN; writes policy.pt, logs and config."""
     from exit_decision.learning.trainer import Trainer
 
-    config = load_project(args.config_dir, args.scenario_override)
+    config = load_project(args.config_dir, args.scenario_override, args.override)
     config.mode(args.mode)
     episodes = args.episodes or config.training.episodes
     out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
+    if args.reward_variant:
+        config.reward(args.reward_variant)
+        config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
     trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir)
     policy = trainer.run(episodes, resume=args.resume)
     print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
@@ -85,16 +91,29 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate policies and/or the reference drivers on fixed seeds; print and save the table."""
     from exit_decision.evaluation.report import evaluate_runs
 
-    config = load_project(args.config_dir, args.scenario_override)
+    config = load_project(args.config_dir, args.scenario_override, args.override)
     table = evaluate_runs(config, policies=args.policy, drivers=args.driver, episodes=args.episodes,
                           seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
     print(table)
     return 0
 
 
+def cmd_plot(args: argparse.Namespace) -> int:
+    """PNG figures from training runs and an evaluation directory."""
+    from exit_decision.evaluation.plots import make_all
+
+    for path in make_all(args.runs, args.evaluation, args.out):
+        print(path)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
-    from exit_decision.benchmarks import bench_simulation
-    print(bench_simulation(load_project(args.config_dir, args.scenario_override), args.episodes, args.seed))
+    from exit_decision.benchmarks import bench_learning, bench_simulation
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.what in ('sim', 'all'):
+        print(bench_simulation(config, args.episodes, args.seed))
+    if args.what in ('learning', 'all'):
+        print(bench_learning(config, args.seed, args.episodes))
     return 0
 
 
@@ -124,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument('--seed', type=int, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
     train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')
+    train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
     train.set_defaults(func=cmd_train)
 
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
@@ -137,8 +157,15 @@ def build_parser() -> argparse.ArgumentParser:
                           help='directory for the CSV and Markdown tables')
     evaluate.set_defaults(func=cmd_evaluate)
 
-    bench = commands.add_parser('bench', help='print simulation throughput, libsumo vs TraCI')
+    plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
+    plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')
+    plot.add_argument('--evaluation', type=Path, default=None, help='an evaluate --out directory')
+    plot.add_argument('--out', type=Path, default=Path('docs/figures'))
+    plot.set_defaults(func=cmd_plot)
+
+    bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning)')
     _common(bench)
+    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'all'], default='all')
     bench.add_argument('--episodes', type=int, default=2)
     bench.add_argument('--seed', type=int, default=0)
     bench.set_defaults(func=cmd_bench)

@@ -6,6 +6,7 @@ must not silently fall back to a default) and every error names the file and the
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Literal, TypeVar
 
@@ -212,6 +213,7 @@ class AlgorithmConfig(Strict):
 
 
 class ExplorationConfig(Strict):
+    biased: bool
     epsilon_start: Probability
     epsilon_end: Probability
     epsilon_decay_episodes: Annotated[int, Field(ge=1)]
@@ -308,18 +310,6 @@ def deep_merge(base: dict, override: dict) -> dict:
     return merged
 
 
-def load_scenario(path: Path | str | None = None, override: Path | str | None = None) -> ScenarioConfig:
-    """The scenario config, optionally with an override file (a variant: denser traffic, ...)."""
-    path = Path(path) if path else default_config_dir() / 'scenario.yaml'
-    data = load_yaml(path)
-    if override:
-        extra = load_yaml(Path(override))
-        if not isinstance(extra, dict) or not isinstance(data, dict):
-            raise ConfigError(f'{override}: a scenario override must be a mapping')
-        data, path = deep_merge(data, extra), Path(override)
-    return parse(ScenarioConfig, data, path)
-
-
 class ProjectConfig(BaseModel):
     """Everything the environment needs, loaded from one config directory."""
     model_config = ConfigDict(frozen=True)
@@ -341,17 +331,42 @@ class ProjectConfig(BaseModel):
         return self.rewards[name]
 
 
-def load_project(config_dir: Path | str | None = None, scenario_override: Path | str | None = None
-                 ) -> ProjectConfig:
+CONFIG_FILES = {'scenario': ScenarioConfig, 'graph': GraphConfig, 'env': EnvConfig, 'modes': ModesConfig,
+                'reward': RewardConfig, 'training': TrainingConfig}
+
+
+def _as_mapping(source: Path | Mapping, what: str) -> dict:
+    data = load_yaml(Path(source)) if isinstance(source, (str, Path)) else source
+    if not isinstance(data, dict):
+        raise ConfigError(f'{source}: {what} must be a mapping')
+    return dict(data)
+
+
+def load_project(config_dir: Path | str | None = None, scenario_override: Path | str | None = None,
+                 overrides: Sequence[Path | Mapping] = ()) -> ProjectConfig:
+    """Load and validate every file of a config directory.
+
+    ``scenario_override``: a YAML merged over scenario.yaml (a scenario variant).
+    ``overrides``: YAML files or dicts keyed by config file name (``{env: {...}, training: {...}}``)
+    merged over the files, in order (the ablation steps use this)."""
     directory = Path(config_dir) if config_dir else default_config_dir()
-    config = ProjectConfig(
-        scenario=load_scenario(directory / 'scenario.yaml', scenario_override),
-        graph=load(GraphConfig, directory / 'graph.yaml'),
-        env=load(EnvConfig, directory / 'env.yaml'),
-        modes=load(ModesConfig, directory / 'modes.yaml').modes,
-        rewards=load(RewardConfig, directory / 'reward.yaml').variants,
-        training=load(TrainingConfig, directory / 'training.yaml'),
-    )
+    raw = {name: load_yaml(directory / f'{name}.yaml') for name in CONFIG_FILES}
+    sources = {name: directory / f'{name}.yaml' for name in CONFIG_FILES}
+    extra = [(scenario_override, {'scenario': _as_mapping(scenario_override, 'a scenario override')})] \
+        if scenario_override else []
+    extra += [(source, _as_mapping(source, 'an override')) for source in overrides]
+    for source, data in extra:
+        for name, values in data.items():
+            if name not in CONFIG_FILES:
+                raise ConfigError(f'{source}: unknown config file {name!r}; known: {", ".join(CONFIG_FILES)}')
+            if not isinstance(raw[name], dict) or not isinstance(values, dict):
+                raise ConfigError(f'{source}: {name} must be a mapping')
+            raw[name] = deep_merge(raw[name], values)
+            sources[name] = Path(str(source)) if isinstance(source, (str, Path)) else sources[name]
+    parsed = {name: parse(schema, raw[name], sources[name]) for name, schema in CONFIG_FILES.items()}
+    config = ProjectConfig(scenario=parsed['scenario'], graph=parsed['graph'], env=parsed['env'],
+                           modes=parsed['modes'].modes, rewards=parsed['reward'].variants,
+                           training=parsed['training'])
     config.mode(config.env.mode)
     config.reward(config.env.reward_variant)
     return config

@@ -28,9 +28,10 @@ CHECKPOINT_FORMAT = 'exit_decision.policy/1'
 
 
 def git_revision() -> str:
+    """The checkout's revision (commands run from the repository root), 'unknown' elsewhere."""
     try:
         result = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, check=False, timeout=5)
+                                check=False, timeout=5)
     except (OSError, subprocess.TimeoutExpired):
         return 'unknown'
     return result.stdout.strip() or 'unknown'

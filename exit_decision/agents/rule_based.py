@@ -27,7 +27,7 @@ class IdmParameters:
     comfortable_braking: float = 3.0   # [m/s^2]
     time_headway: float = 1.2          # [s]
     standstill_gap: float = 2.5        # [m]
-    gap_search_braking: float = 1.0    # [m/s^2] drop back while a right change is blocked
+    gap_search_speed: float = 4.0      # [m/s] slower / faster than the target lane while looking for a gap
     firm_braking: float = 3.5          # [m/s^2] the most the rules brake by themselves
     urgent_braking: float = 4.5        # [m/s^2] braking accepted for a lane change at the deadline
     urgency_distance: float = 200.0    # [m] before the deadline, lane changes become urgent
@@ -47,11 +47,14 @@ class RuleBasedDriver:
     def target_lane(self, vehicle: VehicleState) -> int:
         if vehicle.position < self.geometry.merge_done_at['Highway_0']:
             return 1
-        return 0
+        if vehicle.position < self.geometry.diverge_at['Highway_1']:
+            return 0
+        return vehicle.lane_index      # past Exit_1: the task is decided
 
     def desired_speed(self, vehicle: VehicleState) -> float:
         limit = vehicle.lane_speed_limit
-        if vehicle.on_highway and vehicle.position >= self.geometry.merge_done_at['Highway_0']:
+        if vehicle.on_highway and (self.geometry.merge_done_at['Highway_0'] <= vehicle.position
+                                   < self.geometry.diverge_at['Highway_1']):
             # slow to the ramp's limit by the Exit_1 diverge, braking comfortably
             distance = max(self.geometry.diverge_at['Highway_1'] - vehicle.position, 0.0)
             limit = min(limit, math.sqrt(self.ramp_speed_limit ** 2
@@ -112,14 +115,19 @@ class RuleBasedDriver:
 
     def gap_search(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot,
                    accel: float) -> float:
-        """While a lane change is blocked: drop back behind a target-lane vehicle beside or just
-        ahead, or pull ahead of one just behind when the own lane has room."""
+        """While a lane change is blocked: match the target lane's speed, a little slower to
+        drop behind the nearer vehicle when it is ahead, a little faster when it is behind
+        (never faster than the own lane allows)."""
+        p = self.idm_parameters
         around = snapshot.neighbours(('Highway', vehicle.lane_index + lane_change), vehicle.position,
                                      vehicle.length, exclude=vehicle.vehicle_id)
-        search = self.idm_parameters.gap_search_braking * (1.0 + self.urgency(vehicle))
-        if around.follower is not None and around.follower_gap < around.leader_gap and accel > search:
-            return accel   # the blocker is behind and the own lane has room: keep pulling ahead
-        return accel - search
+        if around.leader is None and around.follower is None:
+            return accel
+        if around.leader is not None and around.leader_gap <= around.follower_gap:
+            goal = around.leader.speed - p.gap_search_speed
+        else:
+            goal = around.follower.speed + p.gap_search_speed
+        return min(accel, float(np.clip(goal - vehicle.speed, -p.firm_braking, p.max_acceleration)))
 
     def choose(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> int:
         """Best allowed action: the wanted lane change if allowed, else keep lane; the closest

@@ -86,8 +86,11 @@ class Trainer:
     # --- acting -----------------------------------------------------------------------------
 
     def explore(self, mask: np.ndarray) -> int:
-        """A random allowed action: usually keep the lane; acceleration ~ N(0, std), nearest allowed."""
+        """A random allowed action; biased: usually keep the lane, acceleration ~ N(0, std),
+        the nearest allowed (a uniform random action changes lane 2 times in 3 and brakes)."""
         e, grid = self.training.exploration, self.grid
+        if not e.biased:
+            return int(self.rng.choice(np.flatnonzero(mask)))
         changes = [c for c in grid.lane_changes if (mask & (grid.lane_change_of == c)).any()]
         if 0 in changes and (len(changes) == 1 or self.rng.random() < e.keep_lane_probability):
             change = 0

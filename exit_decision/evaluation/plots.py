@@ -1,0 +1,170 @@
+"""PNG figures like paper 000's (and paper 001's action distribution), from run outputs.
+
+- ``training_reward.png`` (Fig. 5): episode reward during training per mode, GQN vs MDGQN.
+- ``reward_comparison.png`` (Fig. 4): reward matrix vs baseline reward, training curves of
+  the same mode normalised to [0, 1] by each curve's own min and max.
+- ``test_reward.png`` (Fig. 6): test episode reward, mean with min and max, per policy.
+- ``speeds.png`` (Fig. 7): mean speed of CAVs and of all traffic per run.
+- ``actions_<run>.png`` (paper 001 Fig. 20): how often each action was chosen.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+SMOOTHING = 10   # episodes in the rolling mean of training curves
+
+
+def read_csv(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline='') as stream:
+        rows = list(csv.DictReader(stream))
+    return {key: np.array([float(row[key]) for row in rows]) for key in rows[0]} if rows else {}
+
+
+def rolling(values: np.ndarray, window: int = SMOOTHING) -> np.ndarray:
+    if len(values) < window:
+        return values
+    kernel = np.ones(window) / window
+    return np.convolve(values, kernel, mode='valid')
+
+
+def run_info(run_dir: Path) -> dict:
+    info = json.loads((run_dir / 'config.json').read_text())
+    info['reward_variant'] = info['config']['env']['reward_variant']
+    return info
+
+
+def training_reward(run_dirs: list[Path], out: Path) -> Path | None:
+    runs = [(run_info(d), read_csv(d / 'training.csv')) for d in run_dirs if (d / 'training.csv').exists()]
+    runs = [(info, data) for info, data in runs if info['reward_variant'] != 'baseline']
+    if not runs:
+        return None
+    modes = sorted({info['mode'] for info, _ in runs})
+    fig, axes = plt.subplots(1, len(modes), figsize=(4 * len(modes), 3.2), squeeze=False)
+    for ax, mode in zip(axes[0], modes):
+        for info, data in runs:
+            if info['mode'] == mode:
+                ax.plot(rolling(data['reward']), label=info['algorithm'].upper())
+        ax.set_title(mode)
+        ax.set_xlabel('episode')
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(f'episode reward ({SMOOTHING}-episode mean)')
+    axes[0][0].legend()
+    fig.tight_layout()
+    path = out / 'training_reward.png'
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def reward_comparison(run_dirs: list[Path], out: Path) -> Path | None:
+    runs = [(run_info(d), read_csv(d / 'training.csv')) for d in run_dirs if (d / 'training.csv').exists()]
+    baseline = [(i, d) for i, d in runs if i['reward_variant'] == 'baseline']
+    if not baseline:
+        return None
+    info, data = baseline[0]
+    matrix = [(i, d) for i, d in runs if i['reward_variant'] != 'baseline'
+              and i['mode'] == info['mode'] and i['algorithm'] == info['algorithm']]
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for label, curve in [('baseline reward', data['reward'])] + [
+            (f'reward matrix ({i["reward_variant"]})', d['reward']) for i, d in matrix]:
+        smooth = rolling(curve)
+        span = smooth.max() - smooth.min()
+        ax.plot((smooth - smooth.min()) / span if span else smooth * 0, label=label)
+    ax.set_title(f'{info["algorithm"].upper()} {info["mode"]}: normalised training reward')
+    ax.set_xlabel('episode')
+    ax.set_ylabel('normalised reward')
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = out / 'reward_comparison.png'
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def evaluation_runs(evaluation_dir: Path) -> dict[str, dict[str, np.ndarray]]:
+    return {path.stem: read_csv(path) for path in sorted(evaluation_dir.glob('*.csv'))
+            if path.stem != 'summary' and not path.stem.endswith('_actions')}
+
+
+def test_reward(evaluation_dir: Path, out: Path) -> Path | None:
+    runs = evaluation_runs(evaluation_dir)
+    if not runs:
+        return None
+    labels = list(runs)
+    rewards = [runs[label]['reward'] for label in labels]
+    means = np.array([r.mean() for r in rewards])
+    fig, ax = plt.subplots(figsize=(max(5, 0.8 * len(labels)), 3.5))
+    ax.bar(labels, means, color='tab:blue', alpha=0.7)
+    ax.errorbar(labels, means, yerr=[means - [r.min() for r in rewards], [r.max() for r in rewards] - means],
+                fmt='none', ecolor='black', capsize=4)
+    ax.set_ylabel('test episode reward (mean, min-max)')
+    ax.tick_params(axis='x', rotation=45)
+    ax.grid(alpha=0.3, axis='y')
+    fig.tight_layout()
+    path = out / 'test_reward.png'
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def speeds(evaluation_dir: Path, out: Path) -> Path | None:
+    runs = evaluation_runs(evaluation_dir)
+    if not runs:
+        return None
+    labels = list(runs)
+    x = np.arange(len(labels))
+    fig, ax = plt.subplots(figsize=(max(5, 0.8 * len(labels)), 3.5))
+    for offset, (key, name) in zip((-0.2, 0.2), (('v_AVs', 'CAVs'), ('v_s', 'all vehicles'))):
+        values = [runs[label][key] for label in labels]
+        ax.bar(x + offset, [v.mean() for v in values], 0.4, yerr=[v.std() for v in values], capsize=3, label=name)
+    ax.set_xticks(x, labels, rotation=45)
+    ax.set_ylabel('mean speed [m/s]')
+    ax.legend()
+    ax.grid(alpha=0.3, axis='y')
+    fig.tight_layout()
+    path = out / 'speeds.png'
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
+    paths = []
+    for source in sorted(evaluation_dir.glob('*_actions.csv')):
+        data = read_csv(source)
+        accelerations = np.unique(data['acceleration'])
+        grid = np.zeros((3, len(accelerations)))
+        for lc, acc, share in zip(data['lane_change'], data['acceleration'], data['share']):
+            grid[int(lc) + 1, np.searchsorted(accelerations, acc)] = share
+        fig, ax = plt.subplots(figsize=(7, 2.6))
+        image = ax.imshow(grid, aspect='auto', cmap='viridis')
+        ax.set_yticks([0, 1, 2], ['right', 'keep', 'left'])
+        step = max(1, len(accelerations) // 10)
+        ax.set_xticks(range(0, len(accelerations), step), [f'{a:g}' for a in accelerations[::step]])
+        ax.set_xlabel('acceleration [m/s²] (chosen values only)')
+        ax.set_title(f'{source.stem.removesuffix("_actions")}: share of actions chosen')
+        fig.colorbar(image, ax=ax)
+        fig.tight_layout()
+        path = out / f'actions_{source.stem.removesuffix("_actions")}.png'
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def make_all(run_dirs: list[Path], evaluation_dir: Path | None, out: Path) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    made = [training_reward(run_dirs, out), reward_comparison(run_dirs, out)]
+    if evaluation_dir is not None:
+        made += [test_reward(evaluation_dir, out), speeds(evaluation_dir, out)]
+        made += action_distributions(evaluation_dir, out)
+    return [path for path in made if path is not None]
