@@ -9,12 +9,13 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={PACKAGE: ['scenario/sources/*.xml']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
-    ],
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+    ] + [('share/' + PACKAGE + '/' + directory, [directory + '/policy.pt'])
+         for directory in sorted(glob('policies/*')) if glob(directory + '/policy.pt')],
     install_requires=['setuptools'],
     zip_safe=True,
     maintainer='exit_decision developers',
@@ -24,6 +25,11 @@ setup(
     entry_points={
         'console_scripts': [
             'exit-decision = exit_decision.cli:main',
+            'sumo_bridge = exit_decision.ros.sumo_bridge:main',
+            'graph_builder = exit_decision.ros.graph_builder:main',
+            'decision_node = exit_decision.ros.decision_node:main',
+            'recorder = exit_decision.ros.recorder:main',
+            'player = exit_decision.ros.player:main',
         ],
     },
 )

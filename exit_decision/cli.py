@@ -107,6 +107,46 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_stack(args: argparse.Namespace) -> int:
+    """The whole ROS 2 stack in separate processes: an episode, a mode switch, a bag."""
+    from datetime import datetime
+
+    from exit_decision.evaluation.metrics import markdown_table, summarize
+    from exit_decision.ros.launcher import free_bag_path, run_stack
+
+    load_project(args.config_dir)   # fail early, with the key, on a bad config
+    stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
+    bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
+    run = run_stack(mode=args.mode, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
+                    bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
+                    switch_to=args.switch_to or None, switch_at_step=args.switch_at,
+                    config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''))
+    if run.mode_switch:
+        print(run.mode_switch)
+    if run.episodes:
+        label = f'{args.algorithm} {args.mode}' + (f' -> {args.switch_to}' if args.switch_to else '')
+        print(markdown_table([(label, summarize(run.episodes))]))
+    else:
+        print('no episode finished (see the logs)')
+    print(f'bag: {bag}')
+    failed = {name: code for name, code in run.return_codes.items() if code not in (0, -2, -9)}
+    if failed:
+        print(f'nodes that failed: {failed}', file=sys.stderr)
+    return 0 if run.episodes and not failed else 1
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Re-run the decision policy on a bag's recorded graphs; compare with its commands."""
+    from exit_decision.ros.decision_node import default_policy_dir
+    from exit_decision.ros.replay import replay_decisions
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    report = replay_decisions(args.bag, config, args.policy_dir or default_policy_dir(), mode=args.mode,
+                              algorithm=args.algorithm, policy_file=args.policy)
+    print(report.summary())
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from exit_decision.benchmarks import bench_learning, bench_simulation
     config = load_project(args.config_dir, args.scenario_override, args.override)
@@ -156,6 +196,28 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
                           help='directory for the CSV and Markdown tables')
     evaluate.set_defaults(func=cmd_evaluate)
+
+    stack = commands.add_parser('stack', help='run the ROS 2 stack (bridge, graph builder, decision node, '
+                                              'recorder) for an episode, with a mode switch')
+    stack.add_argument('--config-dir', type=Path, default=None)
+    stack.add_argument('--mode', default='AGGP', help='decision mode at start')
+    stack.add_argument('--switch-to', default='CONP', help='mode to switch to mid-run ("" = no switch)')
+    stack.add_argument('--switch-at', type=int, default=300, help='step of the first episode to switch at')
+    stack.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
+    stack.add_argument('--episodes', type=int, default=1)
+    stack.add_argument('--seed', type=int, default=10_000)
+    stack.add_argument('--bag', type=Path, default=None, help='bag directory (default bags/exit_decision_<time>)')
+    stack.add_argument('--policy-dir', type=Path, default=None, help='default: the shipped policies/')
+    stack.set_defaults(func=cmd_stack)
+
+    replay = commands.add_parser('replay', help='re-run the policy on a bag and compare with its commands')
+    _common(replay)
+    replay.add_argument('bag', type=Path)
+    replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
+    replay.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default=None)
+    replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
+    replay.add_argument('--policy-dir', type=Path, default=None)
+    replay.set_defaults(func=cmd_replay)
 
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
     plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')

@@ -22,6 +22,7 @@ from exit_decision.evaluation.metrics import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
 from exit_decision.reward import StepRewardInputs, make_reward
 from exit_decision.scenario.simulation import Backend, CavDriver, HighwaySimulation
+from exit_decision.traffic import StepResult
 
 LANE_CHANGE_WINDOW = 0.5   # [s] the reward's m counts lane changes over this window
 
@@ -80,16 +81,22 @@ class ExitDecisionEnv(gym.Env):
         return {self.graph.vehicle_ids[row]: self.actions.command(int(action[row]))
                 for row in self.graph.cav_rows()}
 
+    def simulate_step(self, commands: dict | None = None) -> tuple[StepResult, float]:
+        """One simulation step (new commands, or None to hold), its reward, logged in the
+        episode log. ``step`` is made of these; the ROS bridge calls it directly."""
+        result = self.sim.step(commands)
+        self._lane_changes.append(len(result.lane_changers))
+        reward = self.reward_fn(StepRewardInputs(result, self.sim.snapshot, sum(self._lane_changes))).total
+        self.episode_log.record(result, reward)
+        return result, reward
+
     def step(self, action):
         commands = self.commands(action)
         total = 0.0
         results = []
         for k in range(self.config.env.decision_interval):
-            result = self.sim.step(commands if k == 0 else None)
-            self._lane_changes.append(len(result.lane_changers))
-            breakdown = self.reward_fn(StepRewardInputs(result, self.sim.snapshot, sum(self._lane_changes)))
-            total += breakdown.total
-            self.episode_log.record(result, breakdown.total)
+            result, reward = self.simulate_step(commands if k == 0 else None)
+            total += reward
             results.append(result)
             if result.terminated or result.truncated:
                 break

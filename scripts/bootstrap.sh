@@ -55,7 +55,7 @@ if _stage_needed msgs "$h"; then
   _stage_done msgs "$h"
 fi
 
-h=$(_hash exit_decision config setup.py setup.cfg package.xml resource requirements.txt)
+h=$(_hash exit_decision config launch policies setup.py setup.cfg package.xml resource requirements.txt)
 if _stage_needed package "$h"; then
   _log "installing the exit_decision package into the venv prefix"
   build="$VENV/build/exit_decision"

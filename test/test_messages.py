@@ -12,7 +12,8 @@ from exit_decision_msgs.msg import CavCommandArray, TrafficGraph as GraphMsg, Ve
 from exit_decision.config import GraphConfig  # noqa: E402
 from exit_decision.graph import GraphBuilder  # noqa: E402
 from exit_decision.ros.conversions import (MessageError, commands_from_msg, commands_to_msg,  # noqa: E402
-                                           graph_from_msg, graph_to_msg, states_from_msg, states_to_msg)
+                                           graph_from_msg, graph_to_msg, stamp_of, states_from_msg,
+                                           states_to_msg)
 from exit_decision.traffic import CavCommand  # noqa: E402
 
 from conftest import make_vehicle  # noqa: E402
@@ -59,7 +60,7 @@ def test_vehicle_state_array(node):
 def test_traffic_graph(node):
     graph = GraphBuilder(GraphConfig(max_vehicles=60, sensing_range=30.0, feature_set='paper'),
                          road_length=516.7, speed_scale=25.0).build(sample_vehicles())
-    msg = graph_to_msg(graph, feature_set='paper', episode=0, step=7, stamp_seconds=0.7)
+    msg = graph_to_msg(graph, feature_set='paper', episode=0, step=7, stamp=stamp_of(0.7))
     got = graph_from_msg(round_trip(node, GraphMsg, msg, 'test_graph'), expected_nodes=60, expected_features=8)
     np.testing.assert_array_equal(got.features, graph.features)
     np.testing.assert_array_equal(got.adjacency, graph.adjacency)
@@ -69,7 +70,7 @@ def test_traffic_graph(node):
 
 def test_cav_command_array(node):
     commands = {'CAV_3': CavCommand(1, -2.5), 'CAV_4': CavCommand(0, 5.0)}
-    msg = commands_to_msg(commands, episode=1, step=9, stamp_seconds=0.9, mode='AGGI', algorithm='mdgqn',
+    msg = commands_to_msg(commands, episode=1, step=9, stamp=stamp_of(0.9), mode='AGGI', algorithm='mdgqn',
                           policy='policies/mdgqn_AGGI.pt')
     got = round_trip(node, CavCommandArray, msg, 'test_commands')
     assert (got.mode, got.algorithm, got.policy) == ('AGGI', 'mdgqn', 'policies/mdgqn_AGGI.pt')
@@ -87,7 +88,7 @@ def test_malformed_messages_are_rejected_naming_the_field():
     bad_speed.vehicles[0].speed = math.nan
     with pytest.raises(MessageError, match="'x': speed is not finite"):
         states_from_msg(bad_speed)
-    commands = commands_to_msg({'CAV_1': CavCommand(0, 0.0)}, episode=0, step=0, stamp_seconds=0.0,
+    commands = commands_to_msg({'CAV_1': CavCommand(0, 0.0)}, episode=0, step=0, stamp=stamp_of(0.0),
                                mode='AGGI', algorithm='gqn', policy='p')
     commands.commands[0].acceleration = math.inf
     with pytest.raises(MessageError, match="'CAV_1' acceleration is not finite"):

@@ -71,14 +71,14 @@ def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
 
 
 def graph_to_msg(graph: TrafficGraph, *, feature_set: str, episode: int, step: int,
-                 stamp_seconds: float) -> GraphMsg:
+                 stamp: Time) -> GraphMsg:
     msg = GraphMsg(episode=episode, step=step, num_nodes=graph.features.shape[0],
                    num_features=graph.features.shape[1], feature_set=feature_set,
                    vehicle_ids=list(graph.vehicle_ids))
     msg.features = graph.features.astype(np.float32, copy=False).ravel()
     msg.adjacency = graph.adjacency.astype(np.uint8, copy=False).ravel()
     msg.cav_mask = graph.cav_mask.astype(np.uint8).ravel()
-    msg.header.stamp = stamp_of(stamp_seconds)
+    msg.header.stamp = stamp
     msg.header.frame_id = 'road'
     return msg
 
@@ -103,13 +103,13 @@ def graph_from_msg(msg: GraphMsg, *, expected_nodes: int | None = None,
     return TrafficGraph(features.copy(), adjacency.copy(), cav_mask, tuple(msg.vehicle_ids))
 
 
-def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: int, stamp_seconds: float,
+def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: int, stamp: Time,
                     mode: str, algorithm: str, policy: str) -> CavCommandArray:
     msg = CavCommandArray(episode=episode, step=step, mode=mode, algorithm=algorithm, policy=policy,
                           commands=[CavCommandMsg(vehicle_id=vid, lane_change=c.lane_change,
                                                   acceleration=c.acceleration)
                                     for vid, c in commands.items()])
-    msg.header.stamp = stamp_of(stamp_seconds)
+    msg.header.stamp = stamp
     msg.header.frame_id = 'road'
     return msg
 

@@ -1,0 +1,117 @@
+"""What the nodes share: topic names, QoS choices, parameters, diagnostics, the main wrapper.
+
+QoS, on purpose:
+- states, graph, commands: reliable, keep last 100. In synchronous mode every message of a
+  step matters (a lost command stalls the bridge until its timeout) and the stack runs on
+  one machine, so reliability is cheap; depth 100 (10 s of simulation) lets a subscriber
+  that falls behind for a while (a recorder on a loaded machine) catch up without losses.
+- the recorder subscribes with depth 1000 for the same reason.
+- episode events: reliable, transient local, depth 50: a late subscriber (the launcher, a
+  recorder started later) still gets the metrics of recent episodes.
+- /clock: best effort, keep last 1 (ROS 2's clock QoS): only the newest time matters.
+- diagnostics: reliable, keep last 10, the /diagnostics convention.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project
+from exit_decision.errors import PolicyError
+
+STATES_TOPIC = '/exit_decision/vehicle_states'
+GRAPH_TOPIC = '/exit_decision/traffic_graph'
+COMMANDS_TOPIC = '/exit_decision/cav_commands'
+EPISODE_TOPIC = '/exit_decision/episode_events'
+CLOCK_TOPIC = '/clock'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+
+STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
+RECORDER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
+EVENT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=50,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOCK_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=1)
+
+
+def describe(description: str, *, read_only: bool = False, integer_range: tuple[int, int] | None = None,
+             float_range: tuple[float, float] | None = None, constraints: str = '') -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(description=description, read_only=read_only,
+                                     additional_constraints=constraints)
+    if integer_range is not None:
+        descriptor.type = ParameterType.PARAMETER_INTEGER
+        descriptor.integer_range = [IntegerRange(from_value=integer_range[0], to_value=integer_range[1], step=1)]
+    if float_range is not None:
+        descriptor.type = ParameterType.PARAMETER_DOUBLE
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float_range[0], to_value=float_range[1])]
+    return descriptor
+
+
+def declare_config(node: Node) -> ProjectConfig:
+    """Declare the read-only ``config_dir`` parameter and load the project config from it."""
+    value = node.declare_parameter('config_dir', '', describe(
+        'directory with the YAML config; empty: the installed share/exit_decision/config',
+        read_only=True)).value
+    return load_project(Path(value) if value else default_config_dir())
+
+
+class Diagnostics:
+    """Counters a node publishes on /diagnostics once a second (and on demand)."""
+
+    def __init__(self, node: Node, name: str):
+        self.node, self.name = node, name
+        self.counters: dict[str, float] = {}
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, STREAM_QOS)
+        node.create_timer(1.0, self.publish)
+
+    def count(self, key: str, amount: float = 1) -> None:
+        self.counters[key] = self.counters.get(key, 0) + amount
+
+    def publish(self) -> None:
+        problems = sum(value for key, value in self.counters.items() if key.startswith('rejected'))
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK, name=self.name,
+            message=f'{problems:g} rejected messages' if problems else 'ok', hardware_id='exit_decision',
+            values=[KeyValue(key=key, value=f'{value:g}') for key, value in sorted(self.counters.items())])
+        message = DiagnosticArray(status=[status])
+        message.header.stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(message)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], None] | None = None) -> int:
+    """Standard main: init, make the node, spin (or ``run``), clean shutdown on Ctrl-C/SIGTERM.
+
+    A node that cannot start (bad config, missing or corrupt policy) says why and exits with 1."""
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    # Python's own SIGINT (KeyboardInterrupt) and ours for SIGTERM, instead of rclpy's, which
+    # would invalidate the context before the node's clean-up (the recorder closing its bag).
+    rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _interrupt)
+    node = None
+    try:
+        node = make_node()
+        (run or rclpy.spin)(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ConfigError, PolicyError) as error:
+        print(f'[{name}] cannot start: {error}', file=sys.stderr)
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

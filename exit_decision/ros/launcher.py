@@ -1,0 +1,175 @@
+"""Start the whole stack as separate processes on a machine without `ros2 launch`.
+
+The same executables `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with
+parameters as `--ros-args -p`: recorder, graph_builder, decision_node, then sumo_bridge once
+the others are listening. Optionally switches the decision mode once mid-run through the
+decision node's standard set_parameters service (what `ros2 param set` calls). When the
+bridge has run its episodes, the others get SIGINT (SIGKILL if they hang), and the episode
+metrics (from the episode events) and the bag path are returned.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import rclpy
+from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, STREAM_QOS
+
+EXECUTABLES = {'sumo_bridge': 'sumo_bridge', 'graph_builder': 'graph_builder',
+               'decision_node': 'decision_node', 'recorder': 'recorder'}
+
+
+def executable(name: str) -> list[str]:
+    """The installed ament executable, or the module when running from a checkout only."""
+    installed = Path(sys.prefix) / 'lib' / 'exit_decision' / name
+    if installed.is_file() and os.access(installed, os.X_OK):
+        return [str(installed)]
+    return [sys.executable, '-m', f'exit_decision.ros.{name}']
+
+
+def ros_args(parameters: dict[str, object]) -> list[str]:
+    args = ['--ros-args']
+    for key, value in parameters.items():
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        args += ['-p', f'{key}:={text}']
+    return args
+
+
+@dataclass
+class StackRun:
+    bag_path: Path
+    episodes: list[dict[str, float]] = field(default_factory=list)
+    mode_switch: str = ''          # what the set_parameters call answered
+    return_codes: dict[str, int] = field(default_factory=dict)
+
+
+class StackLauncher:
+    def __init__(self, parameters: dict[str, dict[str, object]], log_dir: Path):
+        self.parameters = parameters
+        self.log_dir = log_dir
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str) -> None:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        log = open(self.log_dir / f'{name}.log', 'w')
+        env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+        self.processes[name] = subprocess.Popen(
+            executable(EXECUTABLES[name]) + ros_args(self.parameters.get(name, {})),
+            stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+    def check_alive(self) -> None:
+        for name, process in self.processes.items():
+            if process.poll() is not None and name != 'sumo_bridge':
+                tail = (self.log_dir / f'{name}.log').read_text()[-2000:]
+                raise RuntimeError(f'{name} exited with code {process.returncode}:\n{tail}')
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout
+        for name, process in self.processes.items():
+            try:
+                process.wait(max(deadline - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                process.kill()   # rclpy nodes sometimes ignore SIGINT at exit
+                process.wait()
+        return {name: process.returncode for name, process in self.processes.items()}
+
+
+def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: Path, log_dir: Path,
+              switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
+              config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
+              timeout: float = 1800.0) -> StackRun:
+    """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
+    of the first episode (through the parameter service)."""
+    if bag_path.exists():
+        raise FileExistsError(f'{bag_path}: the bag directory exists already')
+    common = {'config_dir': config_dir} if config_dir else {}
+    parameters = {
+        'recorder': {'bag_path': str(bag_path)},
+        'graph_builder': dict(common),
+        'decision_node': {**common, 'mode': mode, 'algorithm': algorithm,
+                          **({'policy_dir': policy_dir} if policy_dir else {})},
+        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing},
+    }
+    for name, values in (extra or {}).items():
+        parameters[name].update(values)
+    launcher = StackLauncher(parameters, log_dir)
+    run = StackRun(bag_path)
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('stack_launcher', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    state = {'step': -1, 'episode': -1, 'ended': 0}
+
+    def on_event(msg: EpisodeEvent) -> None:
+        if msg.event == EpisodeEvent.EVENT_ENDED:
+            state['ended'] += 1
+            run.episodes.append({'episode': msg.episode, 'seed': msg.seed, 'v_AVs': msg.v_avs, 'v_s': msg.v_s,
+                                 'p_collision': msg.p_collision, 'p_collision_CAV': msg.p_collision_cav,
+                                 'N_braking': float(msg.n_braking), 'braking_steps': float(msg.braking_steps),
+                                 'p_CAV': msg.p_cav, 'p_HV2': msg.p_hv2, 'reward': msg.reward,
+                                 'steps': float(msg.steps)})
+
+    def on_states(msg: VehicleStateArray) -> None:
+        state['step'], state['episode'] = msg.step, msg.episode
+
+    node.create_subscription(EpisodeEvent, EPISODE_TOPIC, on_event, EVENT_QOS)
+    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
+    client = node.create_client(SetParameters, '/decision_node/set_parameters')
+    try:
+        for name in ('recorder', 'graph_builder', 'decision_node'):
+            launcher.start(name)
+        deadline = time.monotonic() + 120.0
+        # the recorder, graph builder and decision node all subscribe to the states
+        while node.count_subscribers(STATES_TOPIC) < 4 or not client.service_is_ready():
+            launcher.check_alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
+            executor.spin_once(timeout_sec=0.2)
+        launcher.start('sumo_bridge')
+        switched = switch_to is None
+        deadline = time.monotonic() + timeout
+        while launcher.processes['sumo_bridge'].poll() is None:
+            launcher.check_alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'the stack did not finish within {timeout} s')
+            executor.spin_once(timeout_sec=0.05)
+            if not switched and state['episode'] == 0 and state['step'] >= switch_at_step:
+                future = client.call_async(SetParameters.Request(
+                    parameters=[Parameter('mode', value=switch_to).to_parameter_msg()]))
+                executor.spin_until_future_complete(future, timeout_sec=10.0)
+                result = future.result().results[0] if future.result() else None
+                run.mode_switch = (f'mode {mode} -> {switch_to} at step {state["step"]}: '
+                                   + ('accepted' if result and result.successful else
+                                      f'refused ({result.reason if result else "no answer"})'))
+                switched = True
+        end = time.monotonic() + 5.0   # the last episode event may still be in flight
+        while state['ended'] < episodes and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        run.return_codes = launcher.stop()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return run
+
+
+def free_bag_path(base: Path) -> Path:
+    """base, or base_2, base_3, ... : the first that does not exist."""
+    path, index = base, 1
+    while path.exists():
+        index += 1
+        path = base.with_name(f'{base.name}_{index}')
+    return path

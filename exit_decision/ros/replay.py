@@ -1,0 +1,75 @@
+"""Offline replay: re-run a decision policy on the graphs and states recorded in a bag.
+
+For every recorded command array, the policy (the recorded one, another mode, or a given
+checkpoint) decides again on the graph and states of the same step, under the shield; the
+report counts the CAV commands that match the recorded ones and lists where they differ.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.shield import Shield
+from exit_decision.config import ProjectConfig
+from exit_decision.policy import PolicyController, load_policy
+from exit_decision.ros.bags import read_messages
+from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+from exit_decision.ros.conversions import commands_from_msg, graph_from_msg, states_from_msg
+from exit_decision.scenario.geometry import RoadGeometry
+
+
+@dataclass
+class ReplayReport:
+    decisions: int = 0            # recorded command arrays replayed
+    commands: int = 0             # CAV commands compared
+    matching: int = 0
+    missing_inputs: int = 0       # command arrays whose graph or states are not in the bag
+    differences: list[str] = field(default_factory=list)
+
+    def summary(self, limit: int = 20) -> str:
+        share = self.matching / self.commands if self.commands else float('nan')
+        lines = [f'{self.decisions} decisions, {self.commands} CAV commands: {self.matching} match '
+                 f'({share:.1%}); {self.missing_inputs} decisions without recorded inputs']
+        lines += [f'  {d}' for d in self.differences[:limit]]
+        if len(self.differences) > limit:
+            lines.append(f'  ... and {len(self.differences) - limit} more differences')
+        return '\n'.join(lines)
+
+
+def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: str | None = None,
+                     algorithm: str | None = None, policy_file: Path | None = None) -> ReplayReport:
+    graphs, states, recorded = {}, {}, []
+    for topic, _, _, msg in read_messages(bag, {GRAPH_TOPIC, STATES_TOPIC, COMMANDS_TOPIC}):
+        key = (msg.episode, msg.step)
+        {GRAPH_TOPIC: graphs, STATES_TOPIC: states}.get(topic, {})[key] = msg
+        if topic == COMMANDS_TOPIC:
+            recorded.append(msg)
+    grid = ActionGrid(config.env.actions)
+    shield = Shield(config.env.shield, grid, RoadGeometry.of(config.scenario.road),
+                    config.env.decision_interval * config.scenario.step_length)
+    controllers: dict[Path, PolicyController] = {}
+    report = ReplayReport()
+    for msg in recorded:
+        key = (msg.episode, msg.step)
+        if key not in graphs or key not in states:
+            report.missing_inputs += 1
+            continue
+        path = policy_file or policy_dir / f'{algorithm or msg.algorithm}_{mode or msg.mode}' / 'policy.pt'
+        if path not in controllers:
+            controllers[path] = PolicyController(load_policy(path), shield)
+        decision = controllers[path].decide(graph_from_msg(graphs[key]), states_from_msg(states[key]))
+        report.decisions += 1
+        for vehicle_id, command in commands_from_msg(msg).items():
+            report.commands += 1
+            again = grid.command(decision.actions[vehicle_id]) if vehicle_id in decision.actions else None
+            if again is not None and again.lane_change == command.lane_change and np.isclose(
+                    again.acceleration, command.acceleration, atol=1e-4):
+                report.matching += 1
+            else:
+                report.differences.append(f'episode {key[0]} step {key[1]} {vehicle_id}: recorded '
+                                          f'({command.lane_change:+d}, {command.acceleration:g}), replayed '
+                                          f'{"none" if again is None else f"({again.lane_change:+d}, {again.acceleration:g})"}')
+    return report

@@ -1,0 +1,196 @@
+"""sumo_bridge: owns the embedded SUMO scenario and puts it on ROS 2 topics.
+
+Publishes /clock (simulation time), the vehicle states of every step and episode events
+(start; end with the metrics); applies the CAV commands it receives. Timing:
+- synchronous (default): on a decision step (every ``decision_interval`` steps) it waits
+  for the commands answering that step, up to ``command_timeout`` (then warns, holds the
+  previous commands and goes on): deterministic, the mode for evaluation;
+- realtime: steps on a wall-clock schedule (``realtime_factor`` x real time) and applies
+  the newest commands that arrived.
+Commands that cannot be applied (stale step, unknown or absent vehicle, non-finite values)
+are rejected one by one and counted on /diagnostics; the step goes on.
+"""
+from __future__ import annotations
+
+import time
+
+import rclpy
+from rclpy.node import Node
+from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, VehicleStateArray
+from rclpy.executors import SingleThreadedExecutor
+from rosgraph_msgs.msg import Clock
+
+from exit_decision.env import ExitDecisionEnv
+from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
+                                      STATES_TOPIC, STREAM_QOS, Diagnostics, declare_config, describe, run_node)
+from exit_decision.ros.conversions import MessageError, commands_from_msg, stamp_of, states_to_msg
+from exit_decision.scenario.simulation import CommandError
+
+
+class SumoBridge(Node):
+    def __init__(self):
+        super().__init__('sumo_bridge')
+        self.config = declare_config(self)
+        p = self.declare_parameter
+        self.timing = p('timing', 'synchronous', describe(
+            'synchronous: wait for the commands of each decision step; realtime: step on a wall timer',
+            read_only=True, constraints='synchronous | realtime')).value
+        if self.timing not in ('synchronous', 'realtime'):
+            raise ValueError(f"timing must be 'synchronous' or 'realtime', got {self.timing!r}")
+        self.command_timeout = p('command_timeout', 1.0, describe(
+            '[s] synchronous mode: longest wait for the commands of a decision step',
+            float_range=(0.001, 60.0))).value
+        self.realtime_factor = p('realtime_factor', 1.0, describe(
+            'realtime mode: simulated seconds per wall-clock second', float_range=(0.01, 1000.0))).value
+        self.episodes = p('episodes', 1, describe('episodes to run, 0 = until stopped',
+                                                  integer_range=(0, 1_000_000))).value
+        self.seed = p('seed', 10_000, describe('seed of the first episode (then +1 each)',
+                                               integer_range=(0, 2**31 - 1))).value
+        self.startup_timeout = p('startup_timeout', 30.0, describe(
+            '[s] synchronous policy mode: wait this long at start for a commands publisher and a states '
+            'subscriber', float_range=(0.0, 3600.0))).value
+        cav_driver = p('cav_driver', 'policy', describe(
+            'policy: CAVs follow the commands; sumo: SUMO drives them (reference runs)', read_only=True,
+            constraints='policy | sumo')).value
+        self.env = ExitDecisionEnv(self.config, cav_driver=cav_driver)
+        self.wait_for_peers = self.timing == 'synchronous' and cav_driver == 'policy'
+        self.interval = self.config.env.decision_interval
+        self.step_length = self.config.scenario.step_length
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, CLOCK_QOS)
+        self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+        self.events_pub = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
+        self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
+        self.diagnostics = Diagnostics(self, 'sumo_bridge')
+        self.episode = 0
+        self.pending: CavCommandArray | None = None
+        self.executor_ = SingleThreadedExecutor(context=self.context)
+        self.executor_.add_node(self)
+        self.get_logger().info(f'{self.timing} bridge, {self.episodes or "unlimited"} episode(s) from seed '
+                               f'{self.seed}, decisions every {self.interval} steps')
+
+    # --- commands -----------------------------------------------------------------------------
+
+    def on_commands(self, msg: CavCommandArray) -> None:
+        if msg.episode != self.episode or (self.pending is not None and msg.step < self.pending.step):
+            self.diagnostics.count('rejected_stale_commands')
+            return
+        self.pending = msg
+
+    def take_commands(self, step: int) -> dict | None:
+        """The commands answering ``step`` (synchronous) or the newest ones (realtime), with
+        each command that cannot be applied rejected and counted."""
+        msg = self.pending
+        if msg is None or (self.timing == 'synchronous' and msg.step != step):
+            return None
+        self.pending = None
+        try:
+            commands = commands_from_msg(msg)
+        except MessageError as error:
+            self.diagnostics.count('rejected_command_messages')
+            self.get_logger().warning(f'rejected commands of step {msg.step}: {error}',
+                                      throttle_duration_sec=5.0)
+            return None
+        accepted = {}
+        for vehicle_id, command in commands.items():
+            try:
+                self.env.sim.validate_commands({vehicle_id: command})
+                accepted[vehicle_id] = command
+            except CommandError as error:
+                self.diagnostics.count('rejected_commands')
+                self.get_logger().warning(f'rejected: {error}', throttle_duration_sec=5.0)
+        self.diagnostics.count('applied_commands', len(accepted))
+        return accepted
+
+    def wait_for_commands(self, step: int) -> dict | None:
+        deadline = time.monotonic() + self.command_timeout
+        while rclpy.ok(context=self.context):
+            if self.pending is not None and self.pending.step < step:
+                self.diagnostics.count('rejected_stale_commands')   # answers an earlier step: too late
+                self.pending = None
+            if self.pending is not None and self.pending.step == step:
+                return self.take_commands(step)
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self.diagnostics.count('command_timeouts')
+                self.get_logger().warning(f'no commands for step {step} within {self.command_timeout} s: '
+                                          'holding the previous ones', throttle_duration_sec=5.0)
+                return None
+            self.executor_.spin_once(timeout_sec=remaining)
+        return None
+
+    # --- publishing -----------------------------------------------------------------------------
+
+    def publish_state(self, result) -> None:
+        self.clock_pub.publish(Clock(clock=stamp_of(result.time)))
+        self.states_pub.publish(states_to_msg(result.vehicles, episode=self.episode, step=result.step,
+                                              step_length=self.step_length))
+
+    def publish_event(self, event: int, seed: int, result) -> None:
+        msg = EpisodeEvent(episode=self.episode, seed=seed, event=event, steps=result.step)
+        msg.header.stamp = stamp_of(result.time)
+        if event == EpisodeEvent.EVENT_ENDED:
+            m = self.env.episode_log.metrics()
+            msg.truncated = bool(result.truncated and not result.terminated)
+            msg.v_avs, msg.v_s, msg.p_collision = m['v_AVs'], m['v_s'], m['p_collision']
+            msg.p_collision_cav, msg.p_cav, msg.p_hv2, msg.reward = (
+                m['p_collision_CAV'], m['p_CAV'], m['p_HV2'], m['reward'])
+            msg.n_braking, msg.braking_steps = int(m['N_braking']), int(m['braking_steps'])
+            self.get_logger().info(f'episode {self.episode} (seed {seed}) ended after {result.step} steps: '
+                                   f'p_CAV {m["p_CAV"]:.3f}, p_collision_CAV {m["p_collision_CAV"]:.3f}, '
+                                   f'v_AVs {m["v_AVs"]:.2f} m/s')
+        self.events_pub.publish(msg)
+
+    # --- the loop ---------------------------------------------------------------------------------
+
+    def run_episode(self, seed: int) -> None:
+        self.env.reset(seed=seed)
+        result = self.env.sim.state
+        self.pending = None
+        self.publish_event(EpisodeEvent.EVENT_STARTED, seed, result)
+        period = self.step_length / self.realtime_factor
+        next_tick = time.monotonic()
+        while rclpy.ok(context=self.context):
+            self.publish_state(result)
+            if result.terminated or result.truncated:
+                break
+            if self.timing == 'synchronous':
+                commands = self.wait_for_commands(result.step) if result.step % self.interval == 0 else None
+                self.executor_.spin_once(timeout_sec=0.0)   # parameter services, late messages
+            else:
+                next_tick += period
+                while (wait := next_tick - time.monotonic()) > 0:
+                    self.executor_.spin_once(timeout_sec=wait)
+                commands = self.take_commands(result.step)
+            result, _ = self.env.simulate_step(commands)
+        self.publish_event(EpisodeEvent.EVENT_ENDED, seed, result)
+
+    def wait_for_decision_node(self) -> None:
+        """Synchronous policy mode: do not step before someone can answer."""
+        deadline = time.monotonic() + self.startup_timeout
+        while rclpy.ok(context=self.context) and time.monotonic() < deadline:
+            if self.count_publishers(COMMANDS_TOPIC) and self.count_subscribers(STATES_TOPIC):
+                self.executor_.spin_once(timeout_sec=0.5)   # let the reliable connections settle
+                return
+            self.executor_.spin_once(timeout_sec=0.1)
+        self.get_logger().warning(f'no decision node after {self.startup_timeout} s: starting anyway')
+
+    def run(self) -> None:
+        if self.wait_for_peers:
+            self.wait_for_decision_node()
+        while rclpy.ok(context=self.context) and (self.episodes == 0 or self.episode < self.episodes):
+            self.run_episode(self.seed + self.episode)
+            self.episode += 1
+        self.diagnostics.publish()
+        self.get_logger().info('all episodes done')
+
+    def destroy_node(self) -> None:
+        self.env.close()
+        super().destroy_node()
+
+
+def main() -> int:
+    return run_node('sumo_bridge', SumoBridge, lambda node: node.run())
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
