@@ -221,6 +221,16 @@ class Trainer:
         mean['score'] = mean['p_CAV'] - v.collision_weight * mean['p_collision_CAV']
         return mean
 
+    def validate_and_keep(self) -> None:
+        """Validate; keep the policy if it is the best so far; save the resumable state."""
+        result = self.validate()
+        result['episode'] = self.state.episode
+        self.append_csv(self.out_dir / 'validation.csv', result)
+        if result['score'] > self.state.best_score:
+            self.state.best_score = result['score']
+            save_policy(self.out_dir / 'policy.pt', self.agent.online, {**self.metadata(), 'validation': result})
+        self.save_state()
+
     def save_state(self) -> None:
         torch.save({'online': self.agent.online.state_dict(), 'target': self.agent.target.state_dict(),
                     'optimizer': self.agent.optimizer.state_dict(), 'state': vars(self.state).copy(),
@@ -262,6 +272,8 @@ class Trainer:
             self.load_state(resume)
         elif len(self.demos):
             self.pretrain()
+        if self.state.episode == 0:
+            self.validate_and_keep()   # the pre-trained policy is a candidate too
         bar = tqdm(total=episodes, initial=self.state.episode, desc=f'train {self.algorithm}/{self.mode}',
                    unit='ep', disable=not progress)
         while self.state.episode < episodes:
@@ -280,14 +292,7 @@ class Trainer:
             bar.set_postfix(reward=f'{metrics["reward"]:.0f}', p_CAV=f'{metrics["p_CAV"]:.2f}',
                             col=f'{metrics["p_collision_CAV"]:.2f}')
             if self.state.episode % self.training.validation.every_episodes == 0 or self.state.episode == episodes:
-                result = self.validate()
-                result['episode'] = self.state.episode
-                self.append_csv(self.out_dir / 'validation.csv', result)
-                if result['score'] > self.state.best_score:
-                    self.state.best_score = result['score']
-                    save_policy(self.out_dir / 'policy.pt', self.agent.online,
-                                {**self.metadata(), 'validation': result})
-                self.save_state()
+                self.validate_and_keep()
         bar.close()
         self.env.close()
         return self.out_dir / 'policy.pt'
