@@ -91,3 +91,66 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     with_learning, without = timings['with learning'][0], timings['without learning'][0]
     lines.append(f'  learning slows the environment by {without / with_learning:.1f}x')
     return '\n'.join(lines)
+
+
+def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
+    """Bridge, graph builder and decision node in separate processes, synchronous mode.
+
+    An observer process counts the states and measures, for each decision step, the time
+    from receiving the states to receiving the commands that answer them."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+    from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
+
+    import rclpy
+    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS
+    from exit_decision.ros.launcher import StackLauncher
+
+    common = {'config_dir': config_dir} if config_dir else {}
+    parameters = {'graph_builder': common, 'decision_node': {**common, **({'policy_dir': policy_dir} if policy_dir else {})},
+                  'sumo_bridge': {**common, 'episodes': 0, 'seed': seed}}
+    received: dict[tuple[int, int], float] = {}
+    latencies: list[float] = []
+    counted = {'states': 0, 'first': 0.0, 'last': 0.0}
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('bench_observer', context=context)
+
+    def on_states(msg) -> None:
+        now = time.perf_counter()
+        counted['states'] += 1
+        counted['first'] = counted['first'] or now
+        counted['last'] = now
+        received[(msg.episode, msg.step)] = now
+
+    def on_commands(msg) -> None:
+        sent = received.pop((msg.episode, msg.step), None)
+        if sent is not None:
+            latencies.append((time.perf_counter() - sent) * 1000)
+
+    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
+    node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    with tempfile.TemporaryDirectory() as logs:
+        launcher = StackLauncher(parameters, Path(logs))
+        try:
+            for name in ('graph_builder', 'decision_node', 'sumo_bridge'):
+                launcher.start(name)
+            deadline = time.monotonic() + 600
+            while counted['states'] < steps + 1 and time.monotonic() < deadline:
+                launcher.check_alive()
+                executor.spin_once(timeout_sec=0.1)
+        finally:
+            launcher.stop()
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+    elapsed = counted['last'] - counted['first']
+    measured = counted['states'] - 1
+    latency = np.array(latencies)
+    return '\n'.join([
+        f'ROS 2 stack, 3 processes, synchronous, {measured} steps ({len(latency)} decisions)',
+        f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * 0.1 / elapsed:.1f}x',
+        f'  states -> commands latency: median {np.median(latency):.2f} ms, p99 {np.percentile(latency, 99):.2f} ms'])

@@ -154,6 +154,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(bench_simulation(config, args.episodes, args.seed))
     if args.what in ('learning', 'all'):
         print(bench_learning(config, args.seed, args.episodes))
+    if args.what in ('ros', 'all'):
+        from exit_decision.benchmarks import bench_ros
+        print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed))
     return 0
 
 
@@ -227,7 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning)')
     _common(bench)
-    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'all'], default='all')
+    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'ros', 'all'], default='all')
+    bench.add_argument('--steps', type=int, default=1000, help='ros: synchronous steps to measure')
+    bench.add_argument('--policy-dir', type=Path, default=None, help='ros: default the shipped policies/')
     bench.add_argument('--episodes', type=int, default=2)
     bench.add_argument('--seed', type=int, default=0)
     bench.set_defaults(func=cmd_bench)

@@ -1,0 +1,84 @@
+"""Helpers for the ROS integration tests: small config, random policies, node processes."""
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import rclpy
+import torch
+import yaml
+
+from exit_decision.actions import ActionGrid
+from exit_decision.config import default_config_dir, load_project
+from exit_decision.graph import FEATURE_SETS
+from exit_decision.learning.networks import GraphQNetwork, NetworkShape
+from exit_decision.policy import save_policy
+from exit_decision.ros.launcher import executable, ros_args
+
+SMALL_TRAFFIC = {'HV1': 4, 'HV2': 2, 'HV3': 2, 'CAV': 4}
+
+
+def small_config_dir(target: Path) -> Path:
+    """The shipped config with 12 vehicles instead of 60 (short episodes)."""
+    shutil.copytree(default_config_dir(), target)
+    path = target / 'scenario.yaml'
+    data = yaml.safe_load(path.read_text())
+    for name, count in SMALL_TRAFFIC.items():
+        data['vehicle_classes'][name]['count'] = count
+    path.write_text(yaml.safe_dump(data))
+    return target
+
+
+def random_policies(config_dir: Path, target: Path, modes=('AGGI', 'AGGP', 'CONI', 'CONP')) -> Path:
+    """Small untrained policies for every (algorithm, mode): the wiring, not the driving, is tested."""
+    config = load_project(config_dir)
+    grid = ActionGrid(config.env.actions)
+    for index, (algorithm, mode) in enumerate((a, m) for a in ('gqn', 'mdgqn') for m in modes):
+        torch.manual_seed(index)
+        network = GraphQNetwork(NetworkShape(len(FEATURE_SETS[config.graph.feature_set]), grid.size, 8, 8, 8))
+        save_policy(target / f'{algorithm}_{mode}' / 'policy.pt', network, {
+            'algorithm': algorithm, 'mode': mode, 'num_nodes': config.graph.max_vehicles,
+            'feature_set': config.graph.feature_set, 'decision_interval': config.env.decision_interval,
+            'action_grid': config.env.actions.model_dump()})
+    return target
+
+
+def start_node(name: str, parameters: dict, log: Path) -> subprocess.Popen:
+    return subprocess.Popen(executable(name) + ros_args(parameters), stdout=open(log, 'w'),
+                            stderr=subprocess.STDOUT, env={**os.environ}, start_new_session=True)
+
+
+def stop(process: subprocess.Popen, sig=2, timeout=10.0) -> int:
+    if process.poll() is None:
+        process.send_signal(sig)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.returncode
+
+
+class RosProbe:
+    """An rclpy node in the test process with its own context and executor."""
+
+    def __init__(self, name: str):
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if condition():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return condition()
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+

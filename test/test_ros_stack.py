@@ -1,0 +1,183 @@
+"""Integration tests of the ROS 2 stack: nodes in their own processes, on loopback only."""
+import math
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from exit_decision_msgs.msg import CavCommand, CavCommandArray, TrafficGraph as GraphMsg, VehicleStateArray
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+
+from exit_decision.config import load_project
+from exit_decision.ros.bags import read_messages
+from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC,
+                                      STREAM_QOS)
+from exit_decision.ros.launcher import run_stack
+from exit_decision.ros.replay import replay_decisions
+
+from ros_helpers import RosProbe, random_policies, small_config_dir, start_node, stop
+
+
+@pytest.fixture(scope='module')
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp('ros')
+    config_dir = small_config_dir(root / 'config')
+    return {'root': root, 'config_dir': config_dir, 'policies': random_policies(config_dir, root / 'policies')}
+
+
+def diagnostics_of(test: RosProbe, name: str) -> dict:
+    latest = {}
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == name:
+                latest.update({kv.key: float(kv.value) for kv in status.values})
+    test.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_diagnostics, STREAM_QOS)
+    return latest
+
+
+def set_parameter(test: RosProbe, node_name: str, name: str, value):
+    client = test.node.create_client(SetParameters, f'/{node_name}/set_parameters')
+    assert test.spin_until(client.service_is_ready, 30), f'{node_name} parameter service not up'
+    future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+    test.executor.spin_until_future_complete(future, timeout_sec=10)
+    return future.result().results[0]
+
+
+def test_stack_runs_switches_mode_records_and_replays(setup):
+    root, config_dir, policies = setup['root'], setup['config_dir'], setup['policies']
+    bag = root / 'bag'
+    run = run_stack(mode='AGGP', algorithm='mdgqn', episodes=1, seed=10_000, bag_path=bag, log_dir=root / 'logs',
+                    switch_to='CONP', switch_at_step=100, config_dir=str(config_dir), policy_dir=str(policies),
+                    timeout=300)
+    assert run.mode_switch.endswith('accepted'), run.mode_switch
+    assert len(run.episodes) == 1 and run.episodes[0]['steps'] > 100
+    assert all(code in (0, -2) for code in run.return_codes.values()), run.return_codes
+    topics = {}
+    for topic, _, _, msg in read_messages(bag):
+        topics.setdefault(topic, []).append(msg)
+    steps = int(run.episodes[0]['steps'])
+    assert len(topics[STATES_TOPIC]) == steps + 1, 'every state of the episode is in the bag'
+    assert len(topics[GRAPH_TOPIC]) == steps + 1
+    modes = [m.mode for m in topics[COMMANDS_TOPIC]]
+    assert modes[0] == 'AGGP' and modes[-1] == 'CONP' and modes.count('CONP') < len(modes)
+    assert len(topics[COMMANDS_TOPIC]) == math.ceil(steps / 5), 'one decision every 5 steps, none missed'
+    report = replay_decisions(bag, load_project(config_dir), policies)
+    assert report.commands > 0 and report.matching == report.commands and report.missing_inputs == 0
+    other = replay_decisions(bag, load_project(config_dir), policies, mode='AGGI')
+    assert other.matching < other.commands, 'another mode decides differently'
+
+
+def test_mode_parameter_refuses_unknown_values_with_a_reason(setup):
+    process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
+                                           'mode': 'AGGI'}, setup['root'] / 'decision_param.log')
+    test = RosProbe('param_test')
+    try:
+        refused = set_parameter(test, 'decision_node', 'mode', 'FAST')
+        assert not refused.successful and "unknown mode 'FAST'" in refused.reason and 'CONP' in refused.reason
+        assert set_parameter(test, 'decision_node', 'mode', 'CONI').successful
+        refused = set_parameter(test, 'decision_node', 'algorithm', 'dqn')
+        assert not refused.successful and "unknown algorithm 'dqn'" in refused.reason
+    finally:
+        test.close()
+        stop(process)
+
+
+def test_missing_policy_fails_at_start_naming_the_path(setup, tmp_path):
+    process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': str(tmp_path)},
+                         tmp_path / 'decision.log')
+    assert process.wait(60) == 1
+    assert f'{tmp_path}/gqn_AGGI/policy.pt: no such policy file' in (tmp_path / 'decision.log').read_text()
+
+
+def test_malformed_messages_are_rejected_and_counted(setup):
+    root = setup['root']
+    decision = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
+                          root / 'decision_bad.log')
+    test = RosProbe('malformed_test')
+    try:
+        counters = diagnostics_of(test, 'decision_node')
+        graphs = test.node.create_publisher(GraphMsg, GRAPH_TOPIC, STREAM_QOS)
+        states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+        assert test.spin_until(lambda: graphs.get_subscription_count() and states.get_subscription_count(), 30)
+        wrong_n = GraphMsg(episode=0, step=0, num_nodes=3, num_features=20, vehicle_ids=['', '', ''])
+        wrong_n.features = np.zeros(60, np.float32)
+        wrong_n.adjacency = np.zeros(9, np.uint8).tobytes()
+        wrong_n.cav_mask = np.zeros(3, np.uint8).tobytes()
+        states.publish(VehicleStateArray(episode=0, step=0))
+        graphs.publish(wrong_n)
+        assert test.spin_until(lambda: counters.get('rejected_graphs', 0) >= 1, 20), counters
+        assert decision.poll() is None, 'the node is still running'
+    finally:
+        test.close()
+        stop(decision)
+
+
+def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
+    root, config_dir, policies = setup['root'], setup['config_dir'], setup['policies']
+    common = {'config_dir': config_dir}
+    graph = start_node('graph_builder', common, root / 'graph_restart.log')
+    decision_params = {**common, 'policy_dir': policies}
+    decision = start_node('decision_node', decision_params, root / 'decision_restart1.log')
+    test = RosProbe('restart_test')
+    latest = {'step': -1}
+    test.node.create_subscription(VehicleStateArray, STATES_TOPIC,
+                                  lambda m: latest.update(step=m.step), STREAM_QOS)
+    commands = []
+    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, commands.append, STREAM_QOS)
+    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 0.3},
+                        root / 'bridge_restart.log')
+    try:
+        assert test.spin_until(lambda: latest['step'] >= 50, 60)
+        stop(decision, sig=9)                              # the decision node dies
+        stopped_at = latest['step']
+        assert test.spin_until(lambda: latest['step'] >= stopped_at + 20, 60), 'the bridge goes on alone'
+        decision = start_node('decision_node', decision_params, root / 'decision_restart2.log')
+        answered = len(commands)
+        assert test.spin_until(lambda: len(commands) > answered + 5, 60), 'decisions resume after the restart'
+        assert bridge.wait(120) == 0
+        assert 'no commands for step' in (root / 'bridge_restart.log').read_text()
+    finally:
+        test.close()
+        for process in (bridge, decision, graph):
+            stop(process)
+
+
+def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
+    bag = tmp_path / 'bag'
+    recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
+    test = RosProbe('recorder_test')
+    try:
+        publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+        assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
+        for step in range(200):
+            publisher.publish(CavCommandArray(step=step, mode='AGGI'))
+        test.spin_until(lambda: False, 1.0)
+        assert stop(recorder, sig=15) == 0
+    finally:
+        test.close()
+        stop(recorder, sig=9)
+    steps = [msg.step for topic, _, _, msg in read_messages(bag) if topic == COMMANDS_TOPIC]
+    assert steps == list(range(200))
+
+
+def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
+    root = setup['root']
+    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'episodes': 1, 'startup_timeout': 0.0,
+                                        'command_timeout': 5.0}, root / 'bridge_bad.log')
+    test = RosProbe('bad_commands_test')
+    try:
+        counters = diagnostics_of(test, 'sumo_bridge')
+        seen = []
+        test.node.create_subscription(VehicleStateArray, STATES_TOPIC, seen.append, STREAM_QOS)
+        publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+        assert test.spin_until(lambda: seen, 30)
+        bad = CavCommandArray(episode=0, step=seen[0].step,
+                              commands=[CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=1.0)])
+        publisher.publish(bad)
+        assert test.spin_until(lambda: counters.get('rejected_commands', 0) >= 1, 20), counters
+        assert test.spin_until(lambda: seen[-1].step > seen[0].step, 20), 'the bridge steps on'
+        assert bridge.poll() is None
+    finally:
+        test.close()
+        stop(bridge)
