@@ -98,6 +98,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ablation(args: argparse.Namespace) -> int:
+    """Train and evaluate each step of config/ablation.yaml; print the table."""
+    from exit_decision.learning.ablation import markdown, run_ablation
+
+    table = run_ablation(args.out, args.algorithm, args.mode, args.episodes, args.test_episodes, args.seed,
+                         args.test_seed, args.only, args.config_dir)
+    print(markdown(table))
+    return 0
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """PNG figures from training runs and an evaluation directory."""
     from exit_decision.evaluation.plots import make_all
@@ -221,6 +231,18 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
     replay.add_argument('--policy-dir', type=Path, default=None)
     replay.set_defaults(func=cmd_replay)
+
+    ablation = commands.add_parser('ablation', help='train + evaluate each step of config/ablation.yaml')
+    ablation.add_argument('--config-dir', type=Path, default=None)
+    ablation.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
+    ablation.add_argument('--mode', default='CONP')
+    ablation.add_argument('--episodes', type=int, default=40, help='training episodes per step')
+    ablation.add_argument('--test-episodes', type=int, default=10)
+    ablation.add_argument('--seed', type=int, default=0)
+    ablation.add_argument('--test-seed', type=int, default=10_000)
+    ablation.add_argument('--only', type=int, nargs='*', default=None, help='step indices to run')
+    ablation.add_argument('--out', type=Path, default=Path('runs/ablation'))
+    ablation.set_defaults(func=cmd_ablation)
 
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
     plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')

@@ -1,0 +1,67 @@
+"""The ablation: train and evaluate each cumulative step of config/ablation.yaml."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from exit_decision.config import ConfigError, default_config_dir, deep_merge, load_project, load_yaml
+from exit_decision.env import ExitDecisionEnv
+from exit_decision.evaluation.evaluate import evaluate
+from exit_decision.evaluation.metrics import summarize
+from exit_decision.learning.trainer import Trainer
+from exit_decision.policy import PolicyController, load_policy
+
+COLUMNS = ('p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking', 'reward')
+
+
+def ablation_steps(path: Path) -> list[tuple[str, dict]]:
+    """(name, cumulative override) per step."""
+    data = load_yaml(path)
+    if not isinstance(data, dict) or not isinstance(data.get('steps'), list):
+        raise ConfigError(f'{path}: expected a list under "steps"')
+    steps, override = [], {}
+    for index, step in enumerate(data['steps']):
+        if not isinstance(step, dict) or set(step) != {'name', 'override'}:
+            raise ConfigError(f'{path}: steps.{index}: needs exactly "name" and "override"')
+        override = deep_merge(override, step['override'])
+        steps.append((step['name'], override))
+    return steps
+
+
+def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_episodes: int, seed: int,
+                 test_seed: int, only: list[int] | None = None, config_dir: Path | None = None) -> Path:
+    """Train each step for ``episodes`` episodes, evaluate its best policy on the test seeds;
+    append one row per step to ``ablation.csv``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    directory = config_dir or default_config_dir()
+    table = out_dir / 'ablation.csv'
+    for index, (name, override) in enumerate(ablation_steps(directory / 'ablation.yaml')):
+        if only and index not in only:
+            continue
+        config = load_project(directory, overrides=[override])
+        run_dir = out_dir / f'step{index}'
+        policy_path = Trainer(config, algorithm, mode, seed, run_dir).run(episodes)
+        policy = load_policy(policy_path)
+        env = ExitDecisionEnv(config, mode=mode)
+        result = evaluate(env, PolicyController(policy, env.shield), range(test_seed, test_seed + eval_episodes))
+        env.close()
+        summary = summarize(result.episodes)
+        row = {'step': index, 'name': name, 'episodes': episodes, 'test_episodes': eval_episodes,
+               **{f'{c}_mean': summary[c][0] for c in COLUMNS}, **{f'{c}_std': summary[c][1] for c in COLUMNS}}
+        new = not table.exists()
+        with open(table, 'a', newline='') as stream:
+            writer = csv.DictWriter(stream, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+    return table
+
+
+def markdown(table: Path) -> str:
+    with open(table, newline='') as stream:
+        rows = sorted(csv.DictReader(stream), key=lambda r: int(r['step']))
+    lines = ['| step | ' + ' | '.join(COLUMNS) + ' |', '|---' * (len(COLUMNS) + 1) + '|']
+    for row in rows:
+        cells = [f'{float(row[c + "_mean"]):.3g} ± {float(row[c + "_std"]):.2g}' for c in COLUMNS]
+        lines.append(f'| {row["step"]}. {row["name"]} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
