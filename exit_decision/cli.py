@@ -108,6 +108,14 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write the results page from evaluation, ablation and figures."""
+    from exit_decision.evaluation.report import results_page
+
+    print(results_page(args.evaluation, args.ablation, args.figures, args.out))
+    return 0
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """PNG figures from training runs and an evaluation directory."""
     from exit_decision.evaluation.plots import make_all
@@ -249,6 +257,13 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument('--evaluation', type=Path, default=None, help='an evaluate --out directory')
     plot.add_argument('--out', type=Path, default=Path('docs/figures'))
     plot.set_defaults(func=cmd_plot)
+
+    report = commands.add_parser('report', help='write docs/results.md from the generated results')
+    report.add_argument('--evaluation', type=Path, default=Path('docs/results/evaluation'))
+    report.add_argument('--ablation', type=Path, default=Path('docs/results/ablation/ablation.csv'))
+    report.add_argument('--figures', type=Path, default=Path('docs/figures'))
+    report.add_argument('--out', type=Path, default=Path('docs/results.md'))
+    report.set_defaults(func=cmd_report)
 
     bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning)')
     _common(bench)

@@ -1,0 +1,50 @@
+"""The rule-based driver's lane plan and speed choice on hand-made traffic."""
+import pytest
+
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.rule_based import RuleBasedDriver
+from exit_decision.agents.shield import Shield
+from exit_decision.config import GraphConfig
+from exit_decision.graph import GraphBuilder
+from exit_decision.scenario.geometry import RoadGeometry
+
+from conftest import make_vehicle
+
+
+@pytest.fixture(scope='module')
+def driver(project_config):
+    geometry = RoadGeometry.of(project_config.scenario.road)
+    grid = ActionGrid(project_config.env.actions)
+    shield = Shield(project_config.env.shield, grid, geometry, 0.5)
+    return RuleBasedDriver(grid, shield, geometry, project_config.scenario.road.ramp_speed_limit)
+
+
+def decide(driver, vehicles):
+    graph = GraphBuilder(GraphConfig(max_vehicles=10, sensing_range=30.0, feature_set='paper'),
+                         500.0, 25.0).build(vehicles)
+    decision = driver.decide(graph, vehicles)
+    return {vid: driver.grid.command(index) for vid, index in decision.actions.items()}
+
+
+def test_leaves_lane_0_before_exit_0_and_moves_right_after_it(driver):
+    before_exit_0 = make_vehicle('a', 'CAV', lane=0, position=60.0)
+    after_exit_0 = make_vehicle('b', 'CAV', lane=1, position=200.0, edge='Highway_1')
+    commands = decide(driver, [before_exit_0, after_exit_0])
+    assert commands['a'].lane_change == 1
+    assert commands['b'].lane_change == -1
+
+
+def test_waits_for_a_gap_instead_of_cutting_in(driver):
+    cav = make_vehicle('cav', 'CAV', lane=1, position=200.0, speed=20.0, edge='Highway_1')
+    beside = make_vehicle('hv', 'HV1', lane=0, position=201.0, speed=20.0, edge='Highway_1')
+    commands = decide(driver, [cav, beside])
+    assert commands['cav'].lane_change == 0
+    assert commands['cav'].acceleration < 0, 'drops back behind the vehicle beside'
+
+
+def test_slows_to_the_ramp_limit_before_exit_1(driver, project_config):
+    geometry = driver.geometry
+    cav = make_vehicle('cav', 'CAV', lane=0, position=geometry.diverge_at['Highway_1'] - 20.0, speed=25.0,
+                       edge='Highway_1')
+    assert decide(driver, [cav])['cav'].acceleration < 0
+    assert driver.desired_speed(cav) < 25.0
