@@ -30,7 +30,7 @@ def cli(*args, **kwargs):
                           text=True, timeout=300, **kwargs)
 
 
-@pytest.mark.parametrize('command', ['run', 'bench'])
+@pytest.mark.parametrize('command', ['run', 'stack', 'train', 'evaluate', 'ablation', 'plot', 'report', 'replay', 'bench'])
 def test_every_command_has_help(command):
     result = cli(command, '--help')
     assert result.returncode == 0 and 'usage: exit-decision' in result.stdout

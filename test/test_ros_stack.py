@@ -163,20 +163,21 @@ def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
 
 def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
     root = setup['root']
-    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'episodes': 1, 'startup_timeout': 0.0,
-                                        'command_timeout': 5.0}, root / 'bridge_bad.log')
     test = RosProbe('bad_commands_test')
+    counters = diagnostics_of(test, 'sumo_bridge')
+    seen = []
+    test.node.create_subscription(VehicleStateArray, STATES_TOPIC, seen.append, STREAM_QOS)
+    publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+    # the bridge waits for this test's subscription and publisher, then for the commands of step 0
+    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'episodes': 1, 'command_timeout': 10.0},
+                        root / 'bridge_bad.log')
     try:
-        counters = diagnostics_of(test, 'sumo_bridge')
-        seen = []
-        test.node.create_subscription(VehicleStateArray, STATES_TOPIC, seen.append, STREAM_QOS)
-        publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
         assert test.spin_until(lambda: seen, 30)
-        bad = CavCommandArray(episode=0, step=seen[0].step,
-                              commands=[CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=1.0)])
-        publisher.publish(bad)
+        assert seen[0].step == 0
+        publisher.publish(CavCommandArray(episode=0, step=0, commands=[
+            CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=1.0)]))
         assert test.spin_until(lambda: counters.get('rejected_commands', 0) >= 1, 20), counters
-        assert test.spin_until(lambda: seen[-1].step > seen[0].step, 20), 'the bridge steps on'
+        assert test.spin_until(lambda: seen[-1].step > 0, 20), 'the bridge steps on'
         assert bridge.poll() is None
     finally:
         test.close()

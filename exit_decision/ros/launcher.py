@@ -101,7 +101,8 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
         'graph_builder': dict(common),
         'decision_node': {**common, 'mode': mode, 'algorithm': algorithm,
                           **({'policy_dir': policy_dir} if policy_dir else {})},
-        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing},
+        # recorder, graph builder, decision node and this launcher listen to the states
+        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing, 'wait_for_subscribers': 4},
     }
     for name, values in (extra or {}).items():
         parameters[name].update(values)

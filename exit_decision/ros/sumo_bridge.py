@@ -49,11 +49,14 @@ class SumoBridge(Node):
         self.startup_timeout = p('startup_timeout', 30.0, describe(
             '[s] synchronous policy mode: wait this long at start for a commands publisher and a states '
             'subscriber', float_range=(0.0, 3600.0))).value
+        self.wait_for_subscribers = p('wait_for_subscribers', 1, describe(
+            'at start, wait (up to startup_timeout) for this many subscribers of the states, e.g. a '
+            'recorder that must not miss the first step', integer_range=(0, 100))).value
         cav_driver = p('cav_driver', 'policy', describe(
             'policy: CAVs follow the commands; sumo: SUMO drives them (reference runs)', read_only=True,
             constraints='policy | sumo')).value
         self.env = ExitDecisionEnv(self.config, cav_driver=cav_driver)
-        self.wait_for_peers = self.timing == 'synchronous' and cav_driver == 'policy'
+        self.wait_for_decision_node = self.timing == 'synchronous' and cav_driver == 'policy'
         self.interval = self.config.env.decision_interval
         self.step_length = self.config.scenario.step_length
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, CLOCK_QOS)
@@ -164,19 +167,20 @@ class SumoBridge(Node):
             result, _ = self.env.simulate_step(commands)
         self.publish_event(EpisodeEvent.EVENT_ENDED, seed, result)
 
-    def wait_for_decision_node(self) -> None:
-        """Synchronous policy mode: do not step before someone can answer."""
+    def wait_for_peers_to_listen(self) -> None:
+        """Do not step before the subscribers are there (and, in synchronous policy mode,
+        someone who can answer)."""
         deadline = time.monotonic() + self.startup_timeout
         while rclpy.ok(context=self.context) and time.monotonic() < deadline:
-            if self.count_publishers(COMMANDS_TOPIC) and self.count_subscribers(STATES_TOPIC):
+            if (self.count_subscribers(STATES_TOPIC) >= self.wait_for_subscribers
+                    and (not self.wait_for_decision_node or self.count_publishers(COMMANDS_TOPIC))):
                 self.executor_.spin_once(timeout_sec=0.5)   # let the reliable connections settle
                 return
             self.executor_.spin_once(timeout_sec=0.1)
-        self.get_logger().warning(f'no decision node after {self.startup_timeout} s: starting anyway')
+        self.get_logger().warning(f'peers missing after {self.startup_timeout} s: starting anyway')
 
     def run(self) -> None:
-        if self.wait_for_peers:
-            self.wait_for_decision_node()
+        self.wait_for_peers_to_listen()
         while rclpy.ok(context=self.context) and (self.episodes == 0 or self.episode < self.episodes):
             self.run_episode(self.seed + self.episode)
             self.episode += 1
