@@ -107,6 +107,17 @@ def test_malformed_messages_are_rejected_and_counted(setup):
         states.publish(VehicleStateArray(episode=0, step=0))
         graphs.publish(wrong_n)
         assert test.spin_until(lambda: counters.get('rejected_graphs', 0) >= 1, 20), counters
+        answered = []
+        test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, answered.append, STREAM_QOS)
+        for step in (10, 5):                       # the graph of step 5 comes after the one of step 10
+            empty = GraphMsg(episode=0, step=step, num_nodes=60, num_features=20, vehicle_ids=[''] * 60)
+            empty.features = np.zeros(60 * 20, np.float32)
+            empty.adjacency = np.zeros(3600, np.uint8).tobytes()
+            empty.cav_mask = np.zeros(60, np.uint8).tobytes()
+            states.publish(VehicleStateArray(episode=0, step=step))
+            graphs.publish(empty)
+        assert test.spin_until(lambda: counters.get('rejected_stale_graphs', 0) >= 1, 20), counters
+        assert [m.step for m in answered] == [10], 'the valid graph is answered, the late one is not'
         assert decision.poll() is None, 'the node is still running'
     finally:
         test.close()
@@ -182,3 +193,36 @@ def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
     finally:
         test.close()
         stop(bridge)
+
+
+def test_player_republishes_a_bag_with_its_clock(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rclpy.serialization import serialize_message
+    from rosgraph_msgs.msg import Clock
+
+    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.common import CLOCK_QOS, CLOCK_TOPIC
+    from exit_decision.ros.conversions import stamp_of
+
+    bag = tmp_path / 'bag'
+    store = typestore()
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        commands = writer.add_connection(COMMANDS_TOPIC, 'exit_decision_msgs/msg/CavCommandArray', typestore=store)
+        clock = writer.add_connection(CLOCK_TOPIC, 'rosgraph_msgs/msg/Clock', typestore=store)
+        for step in range(20):
+            stamp = 1_000_000_000 + step * 100_000_000
+            writer.write(clock, stamp, serialize_message(Clock(clock=stamp_of(step * 0.1))))
+            writer.write(commands, stamp, serialize_message(CavCommandArray(step=step, mode='CONI')))
+    test = RosProbe('player_test')
+    received, clocks = [], []
+    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, received.append, STREAM_QOS)
+    test.node.create_subscription(Clock, CLOCK_TOPIC, clocks.append, CLOCK_QOS)
+    player = start_node('player', {'bag_path': str(bag), 'rate': 5.0}, tmp_path / 'player.log')
+    try:
+        assert test.spin_until(lambda: len(received) == 20, 30), len(received)
+        assert [m.step for m in received] == list(range(20)) and received[0].mode == 'CONI'
+        assert test.spin_until(lambda: clocks and clocks[-1].clock == stamp_of(1.9), 10), 'the clock ends at 1.9 s'
+        assert player.wait(30) == 0
+    finally:
+        test.close()
+        stop(player)
