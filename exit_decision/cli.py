@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
@@ -60,12 +59,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             f'## Configuration\n\n```json\n{config.model_dump_json(indent=2)}\n```\n', encoding='utf-8')
         print(f'table and configuration: {args.markdown}')
     if args.csv:
-        args.csv.parent.mkdir(parents=True, exist_ok=True)
-        with open(args.csv, 'w', newline='') as stream:
-            writer = csv.DictWriter(stream, fieldnames=['seed', *episodes[0]])
-            writer.writeheader()
-            for i, row in enumerate(episodes):
-                writer.writerow({'seed': args.seed + i, **row})
+        from exit_decision.tables import write_rows
+        write_rows(args.csv, [{'seed': args.seed + i, **row} for i, row in enumerate(episodes)])
         print(f'per-episode metrics: {args.csv}')
     return 0
 

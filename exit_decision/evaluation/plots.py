@@ -9,7 +9,6 @@
 """
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -19,13 +18,22 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from exit_decision.tables import read_rows  # noqa: E402
+
 SMOOTHING = 10   # episodes in the rolling mean of training curves
 
 
 def read_csv(path: Path) -> dict[str, np.ndarray]:
-    with open(path, newline='') as stream:
-        rows = list(csv.DictReader(stream))
+    """Columns of a numeric CSV as arrays."""
+    rows = read_rows(path)
     return {key: np.array([float(row[key]) for row in rows]) for key in rows[0]} if rows else {}
+
+
+def save(fig: plt.Figure, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def rolling(values: np.ndarray, window: int = SMOOTHING) -> np.ndarray:
@@ -57,11 +65,7 @@ def training_reward(run_dirs: list[Path], out: Path) -> Path | None:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(f'episode reward ({SMOOTHING}-episode mean)')
     axes[0][0].legend()
-    fig.tight_layout()
-    path = out / 'training_reward.png'
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'training_reward.png')
 
 
 def reward_comparison(run_dirs: list[Path], out: Path) -> Path | None:
@@ -83,11 +87,7 @@ def reward_comparison(run_dirs: list[Path], out: Path) -> Path | None:
     ax.set_ylabel('normalised reward')
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = out / 'reward_comparison.png'
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'reward_comparison.png')
 
 
 def evaluation_runs(evaluation_dir: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -109,11 +109,7 @@ def test_reward(evaluation_dir: Path, out: Path) -> Path | None:
     ax.set_ylabel('test episode reward (mean, min-max)')
     ax.tick_params(axis='x', rotation=45)
     ax.grid(alpha=0.3, axis='y')
-    fig.tight_layout()
-    path = out / 'test_reward.png'
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'test_reward.png')
 
 
 def speeds(evaluation_dir: Path, out: Path) -> Path | None:
@@ -130,11 +126,7 @@ def speeds(evaluation_dir: Path, out: Path) -> Path | None:
     ax.set_ylabel('mean speed [m/s]')
     ax.legend()
     ax.grid(alpha=0.3, axis='y')
-    fig.tight_layout()
-    path = out / 'speeds.png'
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, out / 'speeds.png')
 
 
 def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
@@ -153,11 +145,7 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
         ax.set_xlabel('acceleration [m/s²] (chosen values only)')
         ax.set_title(f'{source.stem.removesuffix("_actions")}: share of actions chosen')
         fig.colorbar(image, ax=ax)
-        fig.tight_layout()
-        path = out / f'actions_{source.stem.removesuffix("_actions")}.png'
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save(fig, out / f'actions_{source.stem.removesuffix("_actions")}.png'))
     return paths
 
 

@@ -10,16 +10,10 @@ import numpy as np
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.evaluation.evaluate import EvaluationResult, evaluate
+from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.policy import PolicyController, load_policy
-
-
-def write_episodes(path: Path, result: EvaluationResult) -> None:
-    with open(path, 'w', newline='') as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(result.episodes[0]))
-        writer.writeheader()
-        writer.writerows(result.episodes)
+from exit_decision.tables import read_rows, write_rows
 
 
 def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequence[str], episodes: int,
@@ -46,7 +40,7 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         rows.append((label, evaluate(env, PolicyController(policy, env.shield), seeds), env))
         env.close()
     for label, result, env in rows:
-        write_episodes(out_dir / f'{label}.csv', result)
+        write_rows(out_dir / f'{label}.csv', result.episodes)
         summary = summarize(result.episodes)
         summaries.append((label, summary))
         if result.decisions:
@@ -74,9 +68,8 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
 def read_summary(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
     """summary.csv -> {run: {metric: (mean, std)}}."""
     runs: dict[str, dict[str, tuple[float, float]]] = {}
-    with open(path, newline='') as stream:
-        for row in csv.DictReader(stream):
-            runs.setdefault(row['run'], {})[row['metric']] = (float(row['mean']), float(row['std']))
+    for row in read_rows(path):
+        runs.setdefault(row['run'], {})[row['metric']] = (float(row['mean']), float(row['std']))
     return runs
 
 
@@ -97,21 +90,15 @@ def target_checks(runs: dict[str, dict[str, tuple[float, float]]], modes: Sequen
                      f'p_CAV {exits:.3f} (target >= {exit_target}): {verdict}'
                      + ('' if verdict == 'met' else f' (short by {max(collisions - collision_target, 0):.4f} '
                         f'collisions, {max(exit_target - exits, 0):.3f} p_CAV)'))
+    # expected: aggressive faster than conservative, incentive faster than punished
+    faster_pairs = (('AGGI', 'CONI'), ('AGGP', 'CONP'), ('AGGI', 'AGGP'), ('CONI', 'CONP'))
     for algorithm in ('mdgqn', 'gqn'):
-        pairs = [('AGGI', 'CONI'), ('AGGP', 'CONP')]
-        for aggressive, conservative in pairs:
-            a, c = f'{algorithm}_{aggressive}', f'{algorithm}_{conservative}'
-            if a in runs and c in runs:
-                holds = value(a, 'v_AVs') > value(c, 'v_AVs')
-                lines.append(f'- {algorithm.upper()}: {aggressive} faster than {conservative} '
-                             f'({value(a, "v_AVs"):.2f} vs {value(c, "v_AVs"):.2f} m/s): '
-                             f'{"holds" if holds else "does not hold"}')
-        for incentive, punished in (('AGGI', 'AGGP'), ('CONI', 'CONP')):
-            i, p = f'{algorithm}_{incentive}', f'{algorithm}_{punished}'
-            if i in runs and p in runs:
-                holds = value(i, 'v_AVs') > value(p, 'v_AVs')
-                lines.append(f'- {algorithm.upper()}: {incentive} faster than {punished} '
-                             f'({value(i, "v_AVs"):.2f} vs {value(p, "v_AVs"):.2f} m/s): '
+        for fast, slow in faster_pairs:
+            f, s = f'{algorithm}_{fast}', f'{algorithm}_{slow}'
+            if f in runs and s in runs:
+                holds = value(f, 'v_AVs') > value(s, 'v_AVs')
+                lines.append(f'- {algorithm.upper()}: {fast} faster than {slow} '
+                             f'({value(f, "v_AVs"):.2f} vs {value(s, "v_AVs"):.2f} m/s): '
                              f'{"holds" if holds else "does not hold"}')
     for mode in modes:
         m, g = f'mdgqn_{mode}', f'gqn_{mode}'

@@ -1,7 +1,6 @@
 """The ablation: train and evaluate each cumulative step of config/ablation.yaml."""
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 from exit_decision.config import ConfigError, default_config_dir, deep_merge, load_project, load_yaml
@@ -10,7 +9,10 @@ from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
 from exit_decision.policy import PolicyController, load_policy
+from exit_decision.tables import append_row, read_rows
 
+#: the ablation's short runs validate less often, on fewer episodes, than the shipped policies
+ABLATION_VALIDATION = {'training': {'validation': {'every_episodes': 20, 'episodes': 5}}}
 COLUMNS = ('p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking', 'reward')
 
 
@@ -38,7 +40,7 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
     for index, (name, override) in enumerate(ablation_steps(directory / 'ablation.yaml')):
         if only and index not in only:
             continue
-        config = load_project(directory, overrides=[override])
+        config = load_project(directory, overrides=[override, ABLATION_VALIDATION])
         run_dir = out_dir / f'step{index}'
         policy_path = Trainer(config, algorithm, mode, seed, run_dir).run(episodes)
         policy = load_policy(policy_path)
@@ -48,18 +50,12 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
         summary = summarize(result.episodes)
         row = {'step': index, 'name': name, 'episodes': episodes, 'test_episodes': eval_episodes,
                **{f'{c}_mean': summary[c][0] for c in COLUMNS}, **{f'{c}_std': summary[c][1] for c in COLUMNS}}
-        new = not table.exists()
-        with open(table, 'a', newline='') as stream:
-            writer = csv.DictWriter(stream, fieldnames=list(row))
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+        append_row(table, row)
     return table
 
 
 def markdown(table: Path) -> str:
-    with open(table, newline='') as stream:
-        rows = sorted(csv.DictReader(stream), key=lambda r: int(r['step']))
+    rows = sorted(read_rows(table), key=lambda r: int(r['step']))
     lines = ['| step | ' + ' | '.join(COLUMNS) + ' |', '|---' * (len(COLUMNS) + 1) + '|']
     for row in rows:
         cells = [f'{float(row[c + "_mean"]):.3g} ± {float(row[c + "_std"]):.2g}' for c in COLUMNS]

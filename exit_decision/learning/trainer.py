@@ -14,7 +14,6 @@ metrics), ``validation.csv``, ``policy.pt`` (best), ``last.pt`` (resumable state
 """
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.learning.agent import Algorithm, GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import NetworkShape
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer
+from exit_decision.tables import append_row
 from exit_decision.policy import GraphPolicy, PolicyController, git_revision, q_values, save_policy
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -225,7 +225,7 @@ class Trainer:
         """Validate; keep the policy if it is the best so far; save the resumable state."""
         result = self.validate()
         result['episode'] = self.state.episode
-        self.append_csv(self.out_dir / 'validation.csv', result)
+        append_row(self.out_dir / 'validation.csv', result)
         if result['score'] > self.state.best_score:
             self.state.best_score = result['score']
             save_policy(self.out_dir / 'policy.pt', self.agent.online, {**self.metadata(), 'validation': result})
@@ -247,15 +247,6 @@ class Trainer:
         self.agent.optimizer.load_state_dict(data['optimizer'])
         self.state = TrainingState(**data['state'])
         self.rng.bit_generator.state = data['rng']
-
-    @staticmethod
-    def append_csv(path: Path, row: dict) -> None:
-        new = not path.exists()
-        with open(path, 'a', newline='') as stream:
-            writer = csv.DictWriter(stream, fieldnames=list(row))
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
 
     # --- the whole run ------------------------------------------------------------------------
 
@@ -286,7 +277,7 @@ class Trainer:
                    'loss': float(np.mean([x['loss'] for x in losses])) if losses else float('nan'),
                    'td_loss': float(np.mean([x['td_loss'] for x in losses])) if losses else float('nan'),
                    'decisions': self.state.decisions, 'updates': self.state.updates, **metrics}
-            self.append_csv(self.out_dir / 'training.csv', row)
+            append_row(self.out_dir / 'training.csv', row)
             self.state.episode += 1
             bar.update(1)
             bar.set_postfix(reward=f'{metrics["reward"]:.0f}', p_CAV=f'{metrics["p_CAV"]:.2f}',
