@@ -128,9 +128,6 @@ class HighwaySimulation:
     def snapshot(self) -> TrafficSnapshot:
         return self._snapshot
 
-    def controlled_cavs(self) -> list[str]:
-        return [v.vehicle_id for v in self._last.vehicles if v.controlled]
-
     def validate_commands(self, commands: Mapping[str, CavCommand]) -> None:
         """Raise CommandError naming the first command that cannot be applied."""
         present = self._snapshot.by_id
