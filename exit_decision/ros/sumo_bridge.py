@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.node import Node
 from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, VehicleStateArray
 from rclpy.executors import SingleThreadedExecutor
@@ -185,6 +186,10 @@ class SumoBridge(Node):
             self.run_episode(self.seed + self.episode)
             self.episode += 1
         self.diagnostics.publish()
+        # Exiting right away could drop the last (reliable) messages: wait until the
+        # subscribers (the launcher, a recorder) have acknowledged them.
+        for publisher in (self.states_pub, self.events_pub):
+            publisher.wait_for_all_acked(Duration(seconds=5.0))
         self.get_logger().info('all episodes done')
 
     def destroy_node(self) -> None:
