@@ -22,7 +22,7 @@ from exit_decision.config import ActionGridConfig, ConfigError
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape
-from exit_decision.traffic import VehicleState
+from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
 
@@ -113,6 +113,6 @@ class PolicyController:
         row_of = {vehicle_id: row for row, vehicle_id in enumerate(graph.vehicle_ids) if vehicle_id}
         cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
         return self.shield.decide(
-            vehicles, cav_ids,
+            TrafficSnapshot(vehicles), cav_ids,
             choose=lambda vehicle, mask: int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax()),
             preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))

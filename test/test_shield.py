@@ -88,11 +88,11 @@ def test_two_cavs_cannot_claim_the_same_gap(project_config, geometry):
         mask & (shield.grid.lane_change_of == (1 if vehicle.lane_index == 0 else -1))
         & (shield.grid.acceleration_of == 0.0))[0]) if (mask & (shield.grid.lane_change_of != 0)).any() \
         else int(np.flatnonzero(mask)[0])
-    decision = shield.decide(vehicles, ['front', 'back'], wants_left_or_right)
+    decision = shield.decide(TrafficSnapshot(vehicles), ['front', 'back'], wants_left_or_right)
     assert shield.grid.lane_change_of[decision.actions['front']] == 1
     assert -1 not in lanes_allowed(shield, decision.masks['back']), 'the gap in lane 1 is reserved'
     off = shield_with(project_config, geometry, gap_reservation=False)
-    decision = off.decide(vehicles, ['front', 'back'], wants_left_or_right)
+    decision = off.decide(TrafficSnapshot(vehicles), ['front', 'back'], wants_left_or_right)
     assert off.grid.lane_change_of[decision.actions['back']] == -1
 
 
@@ -101,4 +101,4 @@ def test_a_chooser_picking_a_masked_action_is_an_error(project_config, geometry)
     cav = make_vehicle('cav', 'CAV', lane=0, position=50.0)
     right = int(np.flatnonzero(shield.grid.lane_change_of == -1)[0])
     with pytest.raises(ValueError, match='masked action'):
-        shield.decide([cav], ['cav'], lambda vehicle, mask: right)
+        shield.decide(TrafficSnapshot([cav]), ['cav'], lambda vehicle, mask: right)

@@ -149,5 +149,5 @@ class RuleBasedDriver:
         snapshot = TrafficSnapshot(vehicles)
         cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
         return self.shield.decide(
-            vehicles, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
+            snapshot, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
             preferred=lambda vehicle: self.grid.index(*self.preferred(vehicle, snapshot)))

@@ -113,12 +113,12 @@ class Shield:
 
     # --- a decision for all CAVs ---------------------------------------------------------------
 
-    def decide(self, vehicles: Sequence[VehicleState], cav_ids: Sequence[str], choose: Chooser,
+    def decide(self, snapshot: TrafficSnapshot, cav_ids: Sequence[str], choose: Chooser,
                preferred: Callable[[VehicleState], int] | None = None) -> Decision:
         """Masks and choices for the given CAVs, front to back, reserving chosen gaps.
 
         ``preferred`` (optional) is the choice without masks, to count overrides."""
-        snapshot = TrafficSnapshot(vehicles)
+        vehicles = snapshot.vehicles
         present = [snapshot.by_id[vid] for vid in cav_ids]
         actions, masks, overridden = {}, {}, 0
         virtual: list[VehicleState] = []

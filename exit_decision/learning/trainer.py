@@ -31,7 +31,7 @@ from exit_decision.learning.networks import NetworkShape
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer
 from exit_decision.tables import append_row
 from exit_decision.policy import GraphPolicy, PolicyController, git_revision, q_values, save_policy
-from exit_decision.traffic import TrafficSnapshot, VehicleState
+from exit_decision.traffic import VehicleState
 
 DEMONSTRATION_SEED = 800_000
 VALIDATION_SEED = 900_000
@@ -121,7 +121,7 @@ class Trainer:
                     if self.rng.random() < epsilon:
                         return self.explore(mask)
                     return int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
-                decision = self.shield.decide(vehicles, env.cav_ids(), choose)
+                decision = self.shield.decide(env.sim.snapshot, env.cav_ids(), choose)
             actions, masks = self.decision_arrays(graph, decision)
             _, reward, terminated, truncated, _ = env.step(np.where(actions >= 0, actions, keep))
             scaled = reward * self.training.reward_scale
@@ -153,7 +153,7 @@ class Trainer:
     def final_record(self) -> DecisionRecord:
         """The last state, with the masks its CAVs would choose under (for bootstrapping)."""
         graph = self.env.graph
-        snapshot = TrafficSnapshot(self.env.sim.snapshot.vehicles)
+        snapshot = self.env.sim.snapshot
         masks = np.zeros((graph.num_nodes, self.grid.size), bool)
         for row in graph.cav_rows():
             masks[row] = self.shield.mask(snapshot.by_id[graph.vehicle_ids[row]], snapshot)

@@ -102,7 +102,6 @@ class HighwaySimulation:
         self._drawn = 0
         self._last = StepResult(step=0, time=0.0, vehicles=[])
         self._snapshot = TrafficSnapshot([])
-        self._on_junction: set[str] = set()
         return self._last
 
     def close(self) -> None:
@@ -183,13 +182,12 @@ class HighwaySimulation:
     def _apply_hv2_rule(self) -> None:
         """HV2 moves one lane right whenever the right lane is clear within the clearance.
 
-        Not inside a junction, and a vehicle that has just taken a ramp still occupies lane 0
+        Not in a diverge zone or on its junction (``lane_change_allowed``), and a vehicle that has just taken a ramp still occupies lane 0
         near the diverge, so ramp vehicles count as lane-0 traffic for the clearance.
         """
         clearance = self.scenario.vehicle_classes['HV2'].right_change_clearance
         for vehicle in self._last.vehicles:
-            if (vehicle.vehicle_class != 'HV2' or vehicle.vehicle_id in self._on_junction
-                    or not self.lane_change_allowed(vehicle, -1)):
+            if vehicle.vehicle_class != 'HV2' or not self.lane_change_allowed(vehicle, -1):
                 continue
             target = [self._snapshot.neighbours_of(vehicle, lane_offset=-1)]
             if vehicle.lane_index == 1:
@@ -267,13 +265,10 @@ class HighwaySimulation:
             self._braking.discard(vehicle_id)
         previous = self._snapshot.by_id
         results = self._sumo.vehicle.getAllSubscriptionResults()
-        vehicles, braking_starts, lane_changers, on_junction = [], [], [], set()
+        vehicles, braking_starts, lane_changers = [], [], []
         lane_id, lane_pos, lateral, speed, accel, signals = self._vars
         for vehicle_id, values in results.items():
-            lane = values[lane_id]
-            info = self._lanes[lane]
-            if lane.startswith(':'):
-                on_junction.add(vehicle_id)
+            info = self._lanes[values[lane_id]]
             name = self._class_of[vehicle_id]
             before = previous.get(vehicle_id)
             changed = (before is not None and before.edge_id == info.edge_id
@@ -303,7 +298,6 @@ class HighwaySimulation:
                 intention=intention, route_target=self._route_target[vehicle_id],
                 controlled=name == 'CAV' and self.cav_driver == 'policy'))
         self._snapshot = TrafficSnapshot(vehicles)
-        self._on_junction = on_junction
         total = self.scenario.total_vehicles
         return StepResult(
             step=self._step, time=self._step * self.scenario.step_length, vehicles=vehicles,
