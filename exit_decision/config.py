@@ -241,6 +241,7 @@ class TrainingConfig(Strict):
     episodes: Annotated[int, Field(ge=1)]
     gamma: Annotated[float, Field(gt=0, le=1)]
     learning_rate: PositiveFloat
+    fine_tune_learning_rate: PositiveFloat
     tau: Annotated[float, Field(gt=0, le=1)]
     batch_size: Annotated[int, Field(ge=1)]
     replay_size: Annotated[int, Field(ge=1)]

@@ -48,3 +48,22 @@ def test_slows_to_the_ramp_limit_before_exit_1(driver, project_config):
                        edge='Highway_1')
     assert decide(driver, [cav])['cav'].acceleration < 0
     assert driver.desired_speed(cav) < 25.0
+
+
+def test_drops_behind_a_follower_that_slows_with_it_near_the_exit(driver):
+    """Near Exit_1 the CAV slows for the ramp; a human just behind in lane 0 slows with it.
+    Pulling ahead is not possible, so it must drop back firmly, not ride alongside."""
+    cav = make_vehicle('cav', 'CAV', lane=1, position=300.0, speed=19.0, edge='Highway_1')
+    follower = make_vehicle('hv2', 'HV2', lane=0, position=292.0, speed=19.0, edge='Highway_1')
+    ahead = make_vehicle('lead', 'HV2', lane=0, position=340.0, speed=16.0, edge='Highway_1')
+    commands = decide(driver, [cav, follower, ahead])
+    assert commands['cav'].lane_change == 0
+    assert commands['cav'].acceleration <= -2.0
+
+
+def test_pulls_ahead_of_a_slower_follower_when_its_lane_is_free(driver):
+    cav = make_vehicle('cav', 'CAV', lane=2, position=40.0, speed=20.0)
+    follower = make_vehicle('hv', 'HV1', lane=1, position=33.0, speed=15.0)
+    commands = decide(driver, [cav, follower])
+    assert commands['cav'].lane_change == 0
+    assert commands['cav'].acceleration >= -1.0, 'keeps ahead of the follower (dropping back brakes harder)'

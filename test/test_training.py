@@ -50,5 +50,7 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
     trainer = Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run')
     trainer.run(episodes=3, resume=tmp_path / 'run' / 'last.pt', progress=False)
     assert [int(r['episode']) for r in rows(tmp_path / 'run' / 'training.csv')] == [0, 1, 2]
+    with pytest.raises(FileExistsError, match='holds an earlier run'):
+        Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=3, progress=False)
     with pytest.raises(ValueError, match='a gqn/CONP run, not mdgqn/CONP'):
         Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').load_state(tmp_path / 'run' / 'last.pt')

@@ -1,6 +1,7 @@
 """The ablation: train and evaluate each cumulative step of config/ablation.yaml."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 from exit_decision.config import ConfigError, default_config_dir, deep_merge, load_project, load_yaml
@@ -9,7 +10,7 @@ from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
 from exit_decision.policy import PolicyController, load_policy
-from exit_decision.tables import append_row, read_rows
+from exit_decision.tables import read_rows, write_rows
 
 #: the ablation's short runs validate less often, on fewer episodes, than the shipped policies
 ABLATION_VALIDATION = {'training': {'validation': {'every_episodes': 20, 'episodes': 5}}}
@@ -33,7 +34,7 @@ def ablation_steps(path: Path) -> list[tuple[str, dict]]:
 def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_episodes: int, seed: int,
                  test_seed: int, only: list[int] | None = None, config_dir: Path | None = None) -> Path:
     """Train each step for ``episodes`` episodes, evaluate its best policy on the test seeds;
-    append one row per step to ``ablation.csv``."""
+    one row per step in ``ablation.csv`` (a step run again replaces its row)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     directory = config_dir or default_config_dir()
     table = out_dir / 'ablation.csv'
@@ -42,6 +43,7 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
             continue
         config = load_project(directory, overrides=[override, ABLATION_VALIDATION])
         run_dir = out_dir / f'step{index}'
+        shutil.rmtree(run_dir, ignore_errors=True)   # a step that is run again starts afresh
         policy_path = Trainer(config, algorithm, mode, seed, run_dir).run(episodes)
         policy = load_policy(policy_path)
         env = ExitDecisionEnv(config, mode=mode)
@@ -50,7 +52,8 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
         summary = summarize(result.episodes)
         row = {'step': index, 'name': name, 'episodes': episodes, 'test_episodes': eval_episodes,
                **{f'{c}_mean': summary[c][0] for c in COLUMNS}, **{f'{c}_std': summary[c][1] for c in COLUMNS}}
-        append_row(table, row)
+        earlier = [r for r in read_rows(table) if int(r['step']) != index] if table.exists() else []
+        write_rows(table, sorted([*earlier, row], key=lambda r: int(r['step'])))
     return table
 
 

@@ -41,6 +41,10 @@ class GraphQAgent:
         self.target = copy.deepcopy(self.online).requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=settings.learning_rate)
 
+    def set_learning_rate(self, learning_rate: float) -> None:
+        for group in self.optimizer.param_groups:
+            group['lr'] = learning_rate
+
     def soft_update(self) -> None:
         tau = self.settings.tau
         with torch.no_grad():

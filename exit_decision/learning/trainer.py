@@ -251,6 +251,9 @@ class Trainer:
     # --- the whole run ------------------------------------------------------------------------
 
     def run(self, episodes: int, resume: Path | None = None, progress: bool = True) -> Path:
+        if resume is None and (self.out_dir / 'training.csv').exists():
+            raise FileExistsError(f'{self.out_dir} holds an earlier run (training.csv): resume it with '
+                                  f'--resume {self.out_dir / "last.pt"}, or choose another --out')
         self.out_dir.mkdir(parents=True, exist_ok=True)
         (self.out_dir / 'config.json').write_text(json.dumps(
             {'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed, 'episodes': episodes,
@@ -263,6 +266,7 @@ class Trainer:
             self.load_state(resume)
         elif len(self.demos):
             self.pretrain()
+        self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
         if self.state.episode == 0:
             self.validate_and_keep()   # the pre-trained policy is a candidate too
         bar = tqdm(total=episodes, initial=self.state.episode, desc=f'train {self.algorithm}/{self.mode}',
