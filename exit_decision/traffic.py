@@ -65,6 +65,19 @@ class TrafficSnapshot:
         self._lanes = {key: sorted(group, key=lambda v: v.position) for key, group in lanes.items()}
         self._positions = {key: [v.position for v in group] for key, group in self._lanes.items()}
 
+    def with_vehicle(self, vehicle: VehicleState) -> TrafficSnapshot:
+        """A copy with one more vehicle; only its corridor is re-sorted (the shield adds a
+        virtual vehicle per reserved gap, several times per decision)."""
+        copy = TrafficSnapshot.__new__(TrafficSnapshot)
+        copy.vehicles = [*self.vehicles, vehicle]
+        copy.by_id = {**self.by_id, vehicle.vehicle_id: vehicle}
+        copy._lanes, copy._positions = dict(self._lanes), dict(self._positions)
+        key = vehicle.corridor
+        index = bisect.bisect_right(self._positions.get(key, []), vehicle.position)
+        copy._lanes[key] = [*self._lanes.get(key, [])[:index], vehicle, *self._lanes.get(key, [])[index:]]
+        copy._positions[key] = [v.position for v in copy._lanes[key]]
+        return copy
+
     def neighbours(self, corridor: tuple[str, int], position: float, length: float,
                    exclude: str | None = None) -> Neighbours:
         """Leader and follower of a vehicle (real or hypothetical) at ``position`` in ``corridor``."""

@@ -102,3 +102,13 @@ def test_a_chooser_picking_a_masked_action_is_an_error(project_config, geometry)
     right = int(np.flatnonzero(shield.grid.lane_change_of == -1)[0])
     with pytest.raises(ValueError, match='masked action'):
         shield.decide(TrafficSnapshot([cav]), ['cav'], lambda vehicle, mask: right)
+
+
+def test_a_snapshot_with_an_added_vehicle_answers_like_one_built_with_it():
+    vehicles = [make_vehicle(f'v{i}', lane=i % 3, position=10.0 * i) for i in range(12)]
+    added = make_vehicle('new', 'CAV', lane=1, position=45.0)
+    grown, built = TrafficSnapshot(vehicles).with_vehicle(added), TrafficSnapshot([*vehicles, added])
+    for lane in range(3):
+        for position in (0.0, 44.0, 45.0, 52.0, 200.0):
+            assert grown.neighbours(('Highway', lane), position, 5.0) == built.neighbours(('Highway', lane), position, 5.0)
+    assert grown.by_id['new'] is added and len(grown.vehicles) == 13

@@ -118,10 +118,8 @@ class Shield:
         """Masks and choices for the given CAVs, front to back, reserving chosen gaps.
 
         ``preferred`` (optional) is the choice without masks, to count overrides."""
-        vehicles = snapshot.vehicles
         present = [snapshot.by_id[vid] for vid in cav_ids]
         actions, masks, overridden = {}, {}, 0
-        virtual: list[VehicleState] = []
         for vehicle in sorted(present, key=lambda v: -v.position):
             mask = self.mask(vehicle, snapshot)
             action = choose(vehicle, mask)
@@ -132,8 +130,7 @@ class Shield:
             actions[vehicle.vehicle_id], masks[vehicle.vehicle_id] = action, mask
             lane_change = int(self.grid.lane_change_of[action])
             if lane_change and self.config.gap_reservation:
-                virtual.append(dataclasses.replace(
+                snapshot = snapshot.with_vehicle(dataclasses.replace(
                     vehicle, vehicle_id=f'{vehicle.vehicle_id}#reserved',
                     lane_index=vehicle.lane_index + lane_change))
-                snapshot = TrafficSnapshot([*vehicles, *virtual])
         return Decision(actions, masks, overridden)
