@@ -125,12 +125,18 @@ def policy_selection(policies_dir: Path) -> list[str]:
     from exit_decision.policy import load_policy
 
     lines = ['Shipped policies (`scripts/train_policies`), each the best of its validation runs '
-             '(10 greedy episodes; episode 0 = right after pre-training on demonstrations):', '']
+             '(greedy episodes on validation seeds; episode 0 = right after pre-training on '
+             'demonstrations), and the validation p_CAV of every run (episode: p_CAV):', '']
     for path in sorted(policies_dir.glob('*/policy.pt')):
-        validation = load_policy(path).metadata.get('validation', {})
+        metadata = load_policy(path).metadata
+        validation = metadata.get('validation', {})
+        episodes = metadata.get('training', {}).get('validation', {}).get('episodes', '?')
+        history = path.parent / 'validation.csv'
+        runs = ', '.join(f'{int(float(r["episode"]))}: {float(r["p_CAV"]):.3f}'
+                         for r in read_rows(history)) if history.exists() else 'no log'
         lines.append(f'- {path.parent.name}: kept from episode {validation.get("episode", "?"):g} '
-                     f'(validation p_CAV {validation.get("p_CAV", float("nan")):.3f}, '
-                     f'p_collision_CAV {validation.get("p_collision_CAV", float("nan")):.3f})')
+                     f'(validation on {episodes} episodes: p_CAV {validation.get("p_CAV", float("nan")):.3f}, '
+                     f'p_collision_CAV {validation.get("p_collision_CAV", float("nan")):.3f}); all runs: {runs}')
     return lines
 
 
@@ -148,7 +154,9 @@ def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: P
              '## Evaluation (test seeds never used in training)', '', summary_md[2].strip(), '',
              f'Per-episode values and action counts: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
              *policy_selection(Path('policies')), '',
-             '## Targets and expected orderings', '', *target_checks(read_summary(evaluation_dir / 'summary.csv')), '']
+             '## Targets and expected orderings', '', *target_checks(read_summary(evaluation_dir / 'summary.csv')), '',
+             'What was tried to reach them, with its measurements: [`design.md`](design.md), sections '
+             '"Rule-based driver" and "Learning".', '']
     if ablation_csv is not None and ablation_csv.exists():
         parts += ['## Ablation: from the paper taken literally to our setting', '',
                   'Each step adds one measure to the previous (config/ablation.yaml); every step is trained with '
