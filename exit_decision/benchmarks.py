@@ -104,8 +104,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     import numpy as np
     from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
 
-    import rclpy
-    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS
+    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
 
     common = {'config_dir': config_dir} if config_dir else {}
@@ -113,16 +112,16 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                   'sumo_bridge': {**common, 'episodes': 0, 'seed': seed}}
     received: dict[tuple[int, int], float] = {}
     latencies: list[float] = []
-    counted = {'states': 0, 'first': 0.0, 'last': 0.0}
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('bench_observer', context=context)
+    counted = {'states': 0, 'first': 0.0, 'last': 0.0, 'step_length': 0.0}
+    probe = ProbeNode('bench_observer')
+    node = probe.node
 
     def on_states(msg) -> None:
         now = time.perf_counter()
         counted['states'] += 1
         counted['first'] = counted['first'] or now
         counted['last'] = now
+        counted['step_length'] = msg.step_length
         received[(msg.episode, msg.step)] = now
 
     def on_commands(msg) -> None:
@@ -132,8 +131,6 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
     with tempfile.TemporaryDirectory() as logs:
         launcher = StackLauncher(parameters, Path(logs))
         try:
@@ -142,15 +139,14 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
             deadline = time.monotonic() + 600
             while counted['states'] < steps + 1 and time.monotonic() < deadline:
                 launcher.check_alive()
-                executor.spin_once(timeout_sec=0.1)
+                probe.executor.spin_once(timeout_sec=0.1)
         finally:
             launcher.stop()
-            node.destroy_node()
-            rclpy.try_shutdown(context=context)
+            probe.close()
     elapsed = counted['last'] - counted['first']
     measured = counted['states'] - 1
     latency = np.array(latencies)
     return '\n'.join([
         f'ROS 2 stack, 3 processes, synchronous, {measured} steps ({len(latency)} decisions)',
-        f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * 0.1 / elapsed:.1f}x',
+        f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
         f'  states -> commands latency: median {np.median(latency):.2f} ms, p99 {np.percentile(latency, 99):.2f} ms'])

@@ -14,7 +14,12 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
 Probability = Annotated[float, Field(ge=0, le=1)]
+Count = Annotated[int, Field(ge=0)]          # may be 0
+PositiveInt = Annotated[int, Field(gt=0)]
+NegativeFloat = Annotated[float, Field(lt=0)]
+UnitInterval = Annotated[float, Field(gt=0, le=1)]   # (0, 1]
 
 
 class ConfigError(ValueError):
@@ -39,16 +44,16 @@ class RoadConfig(Strict):
 
 class CollisionConfig(Strict):
     action: Literal['remove', 'warn', 'teleport', 'none']
-    mingap_factor: Annotated[float, Field(ge=0)]
+    mingap_factor: NonNegativeFloat
     check_junctions: bool
 
 
 class VehicleClassConfig(Strict):
-    count: Annotated[int, Field(ge=0)]
+    count: Count
     insertion_probability: Probability
-    depart_speed: Annotated[float, Field(ge=0)]
-    depart_lane: Literal['random'] | Annotated[int, Field(ge=0)]
-    right_change_clearance: Annotated[float, Field(ge=0)] | None = None
+    depart_speed: NonNegativeFloat
+    depart_lane: Literal['random'] | Count
+    right_change_clearance: NonNegativeFloat | None = None
 
 
 class VehicleTypeConfig(Strict):
@@ -58,7 +63,7 @@ class VehicleTypeConfig(Strict):
     decel: PositiveFloat
     emergency_decel: PositiveFloat
     speed_factor: PositiveFloat
-    speed_dev: Annotated[float, Field(ge=0)]
+    speed_dev: NonNegativeFloat
     politeness: Probability
     car_following: Literal['IDM', 'Krauss', 'EIDM']
 
@@ -68,13 +73,13 @@ VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
 
 class ScenarioConfig(Strict):
     step_length: PositiveFloat
-    max_steps: Annotated[int, Field(gt=0)]
-    sumo_seed_offset: Annotated[int, Field(ge=0)]
+    max_steps: PositiveInt
+    sumo_seed_offset: Count
     road: RoadConfig
     collision: CollisionConfig
     vehicle_classes: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleClassConfig]
     vehicle_types: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleTypeConfig]
-    emergency_braking_threshold: Annotated[float, Field(lt=0)]
+    emergency_braking_threshold: NegativeFloat
 
     @model_validator(mode='after')
     def _every_class_defined(self) -> ScenarioConfig:
@@ -98,7 +103,7 @@ class ScenarioConfig(Strict):
 # --- graph ------------------------------------------------------------------------------
 
 class GraphConfig(Strict):
-    max_vehicles: Annotated[int, Field(gt=0)]
+    max_vehicles: PositiveInt
     sensing_range: PositiveFloat
     feature_set: Literal['paper', 'relative']
 
@@ -124,14 +129,14 @@ class ModesConfig(Strict):
 
 
 class SpeedBounds(Strict):
-    highway: Annotated[float, Field(ge=0)]
-    ramp: Annotated[float, Field(ge=0)]
+    highway: NonNegativeFloat
+    ramp: NonNegativeFloat
 
 
 class MatrixRewardConfig(Strict):
     kind: Literal['matrix']
     exponent_cap: PositiveFloat | None
-    lane_change_cap: Annotated[int, Field(gt=0)] | None
+    lane_change_cap: PositiveInt | None
     dynamic_weights: bool
     comfort_vehicles: Literal['all', 'cav']
     v_min: SpeedBounds
@@ -179,21 +184,21 @@ class ActionGridConfig(Strict):
 
 class ShieldConfig(Strict):
     lane_gap: bool
-    gap_front: Annotated[float, Field(ge=0)]
-    gap_back: Annotated[float, Field(ge=0)]
-    gap_back_time: Annotated[float, Field(ge=0)]
+    gap_front: NonNegativeFloat
+    gap_back: NonNegativeFloat
+    gap_back_time: NonNegativeFloat
     gap_reservation: bool
     stop_capable: bool
     ego_max_braking: PositiveFloat
     leader_max_braking: PositiveFloat
-    stop_margin: Annotated[float, Field(ge=0)]
+    stop_margin: NonNegativeFloat
     human_follower_braking: bool
-    hard_braking: Annotated[float, Field(lt=0)]
-    human_follower_distance: Annotated[float, Field(ge=0)]
+    hard_braking: NegativeFloat
+    human_follower_distance: NonNegativeFloat
 
 
 class EnvConfig(Strict):
-    decision_interval: Annotated[int, Field(ge=1)]
+    decision_interval: PositiveInt
     actions: ActionGridConfig
     shield: ShieldConfig
     reward_variant: str
@@ -203,50 +208,50 @@ class EnvConfig(Strict):
 # --- training -------------------------------------------------------------------------------
 
 class NetworkConfig(Strict):
-    encoder: Annotated[int, Field(gt=0)]
-    gcn: Annotated[int, Field(gt=0)]
-    head: Annotated[int, Field(gt=0)]
+    encoder: PositiveInt
+    gcn: PositiveInt
+    head: PositiveInt
 
 
 class AlgorithmConfig(Strict):
-    multi_step: Annotated[int, Field(ge=1)]
+    multi_step: PositiveInt
 
 
 class ExplorationConfig(Strict):
     biased: bool
     epsilon_start: Probability
     epsilon_end: Probability
-    epsilon_decay_episodes: Annotated[int, Field(ge=1)]
+    epsilon_decay_episodes: PositiveInt
     keep_lane_probability: Probability
-    acceleration_std: Annotated[float, Field(ge=0)]
+    acceleration_std: NonNegativeFloat
 
 
 class DemonstrationConfig(Strict):
-    episodes: Annotated[int, Field(ge=0)]
+    episodes: Count
     batch_share: Annotated[float, Field(ge=0, lt=1)]
-    margin: Annotated[float, Field(ge=0)]
-    margin_weight_start: Annotated[float, Field(ge=0)]
-    margin_weight_end: Annotated[float, Field(ge=0)]
-    margin_decay_episodes: Annotated[int, Field(ge=1)]
-    pretrain_updates: Annotated[int, Field(ge=0)]
+    margin: NonNegativeFloat
+    margin_weight_start: NonNegativeFloat
+    margin_weight_end: NonNegativeFloat
+    margin_decay_episodes: PositiveInt
+    pretrain_updates: Count
 
 
 class ValidationConfig(Strict):
-    every_episodes: Annotated[int, Field(ge=1)]
-    episodes: Annotated[int, Field(ge=1)]
-    collision_weight: Annotated[float, Field(ge=0)]
+    every_episodes: PositiveInt
+    episodes: PositiveInt
+    collision_weight: NonNegativeFloat
 
 
 class TrainingConfig(Strict):
-    episodes: Annotated[int, Field(ge=1)]
-    gamma: Annotated[float, Field(gt=0, le=1)]
+    episodes: PositiveInt
+    gamma: UnitInterval
     learning_rate: PositiveFloat
     fine_tune_learning_rate: PositiveFloat
-    tau: Annotated[float, Field(gt=0, le=1)]
-    batch_size: Annotated[int, Field(ge=1)]
-    replay_size: Annotated[int, Field(ge=1)]
-    warmup_decisions: Annotated[int, Field(ge=0)]
-    updates_per_decision: Annotated[int, Field(ge=0)]
+    tau: UnitInterval
+    batch_size: PositiveInt
+    replay_size: PositiveInt
+    warmup_decisions: Count
+    updates_per_decision: Count
     gradient_clip: PositiveFloat
     reward_scale: PositiveFloat
     network: NetworkConfig

@@ -39,8 +39,7 @@ class ExitDecisionEnv(gym.Env):
         self.graph_builder = GraphBuilder(config.graph, self.sim.geometry.road_length,
                                           scenario.road.highway_speed_limit, scenario.road.lane_count)
         self.actions = ActionGrid(config.env.actions)
-        self.shield = Shield(config.env.shield, self.actions, self.sim.geometry,
-                             config.env.decision_interval * scenario.step_length)
+        self.shield = Shield.of(config, self.actions, self.sim.geometry)
         self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
                                      config.mode(self.mode), scenario.emergency_braking_threshold)
         n, f = config.graph.max_vehicles, self.graph_builder.num_features

@@ -2,10 +2,8 @@
 import os
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
-import rclpy
 import torch
 import yaml
 
@@ -58,27 +56,3 @@ def stop(process: subprocess.Popen, sig=2, timeout=10.0) -> int:
             process.kill()
             process.wait()
     return process.returncode
-
-
-class RosProbe:
-    """An rclpy node in the test process with its own context and executor."""
-
-    def __init__(self, name: str):
-        self.context = rclpy.context.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_until(self, condition, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if condition():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return condition()
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-

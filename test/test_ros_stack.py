@@ -11,11 +11,11 @@ from rclpy.parameter import Parameter
 from exit_decision.config import load_project
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC,
-                                      STREAM_QOS)
+                                      STREAM_QOS, ProbeNode)
 from exit_decision.ros.launcher import run_stack
 from exit_decision.ros.replay import replay_decisions
 
-from ros_helpers import RosProbe, random_policies, small_config_dir, start_node, stop
+from ros_helpers import random_policies, small_config_dir, start_node, stop
 
 
 @pytest.fixture(scope='module')
@@ -25,7 +25,7 @@ def setup(tmp_path_factory):
     return {'root': root, 'config_dir': config_dir, 'policies': random_policies(config_dir, root / 'policies')}
 
 
-def diagnostics_of(test: RosProbe, name: str) -> dict:
+def diagnostics_of(test: ProbeNode, name: str) -> dict:
     latest = {}
 
     def on_diagnostics(msg: DiagnosticArray) -> None:
@@ -36,7 +36,7 @@ def diagnostics_of(test: RosProbe, name: str) -> dict:
     return latest
 
 
-def set_parameter(test: RosProbe, node_name: str, name: str, value):
+def set_parameter(test: ProbeNode, node_name: str, name: str, value):
     client = test.node.create_client(SetParameters, f'/{node_name}/set_parameters')
     assert test.spin_until(client.service_is_ready, 30), f'{node_name} parameter service not up'
     future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
@@ -71,7 +71,7 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
 def test_mode_parameter_refuses_unknown_values_with_a_reason(setup):
     process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
                                            'mode': 'AGGI'}, setup['root'] / 'decision_param.log')
-    test = RosProbe('param_test')
+    test = ProbeNode('param_test')
     try:
         refused = set_parameter(test, 'decision_node', 'mode', 'FAST')
         assert not refused.successful and "unknown mode 'FAST'" in refused.reason and 'CONP' in refused.reason
@@ -94,7 +94,7 @@ def test_malformed_messages_are_rejected_and_counted(setup):
     root = setup['root']
     decision = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
                           root / 'decision_bad.log')
-    test = RosProbe('malformed_test')
+    test = ProbeNode('malformed_test')
     try:
         counters = diagnostics_of(test, 'decision_node')
         graphs = test.node.create_publisher(GraphMsg, GRAPH_TOPIC, STREAM_QOS)
@@ -130,7 +130,7 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
     graph = start_node('graph_builder', common, root / 'graph_restart.log')
     decision_params = {**common, 'policy_dir': policies}
     decision = start_node('decision_node', decision_params, root / 'decision_restart1.log')
-    test = RosProbe('restart_test')
+    test = ProbeNode('restart_test')
     latest = {'step': -1}
     test.node.create_subscription(VehicleStateArray, STATES_TOPIC,
                                   lambda m: latest.update(step=m.step), STREAM_QOS)
@@ -157,7 +157,7 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
 def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
-    test = RosProbe('recorder_test')
+    test = ProbeNode('recorder_test')
     try:
         publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
         assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
@@ -174,7 +174,7 @@ def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
 
 def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
     root = setup['root']
-    test = RosProbe('bad_commands_test')
+    test = ProbeNode('bad_commands_test')
     counters = diagnostics_of(test, 'sumo_bridge')
     seen = []
     test.node.create_subscription(VehicleStateArray, STATES_TOPIC, seen.append, STREAM_QOS)
@@ -213,7 +213,7 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
             stamp = 1_000_000_000 + step * 100_000_000
             writer.write(clock, stamp, serialize_message(Clock(clock=stamp_of(step * 0.1))))
             writer.write(commands, stamp, serialize_message(CavCommandArray(step=step, mode='CONI')))
-    test = RosProbe('player_test')
+    test = ProbeNode('player_test')
     received, clocks = [], []
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, received.append, STREAM_QOS)
     test.node.create_subscription(Clock, CLOCK_TOPIC, clocks.append, CLOCK_QOS)

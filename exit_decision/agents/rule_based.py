@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +20,9 @@ from exit_decision.agents.shield import Decision, Shield
 from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot, VehicleState
+
+if TYPE_CHECKING:
+    from exit_decision.env import ExitDecisionEnv
 
 
 @dataclass(frozen=True)
@@ -43,6 +47,11 @@ class RuleBasedDriver:
         self.geometry = geometry
         self.ramp_speed_limit = ramp_speed_limit
         self.idm_parameters = idm
+
+    @classmethod
+    def for_env(cls, env: ExitDecisionEnv) -> RuleBasedDriver:
+        """The driver for an environment's CAVs: its action grid, shield and road."""
+        return cls(env.actions, env.shield, env.sim.geometry, env.config.scenario.road.ramp_speed_limit)
 
     def target_lane(self, vehicle: VehicleState) -> int:
         if vehicle.position < self.geometry.merge_done_at['Highway_0']:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from exit_decision.actions import ActionGrid
-from exit_decision.config import ShieldConfig
+from exit_decision.config import ProjectConfig, ShieldConfig
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.scenario.sumo_inputs import DIVERGES
 from exit_decision.traffic import TrafficSnapshot, VehicleState
@@ -47,6 +47,11 @@ class Shield:
         self.geometry = geometry
         self.horizon = decision_time            # [s] an action is held this long
         self.fallback = grid.index(0, grid.accelerations.min())
+
+    @classmethod
+    def of(cls, config: ProjectConfig, grid: ActionGrid, geometry: RoadGeometry) -> Shield:
+        """The shield of a project config: an action is held for one decision interval."""
+        return cls(config.env.shield, grid, geometry, config.env.decision_interval * config.scenario.step_length)
 
     # --- one vehicle -----------------------------------------------------------------------
 

@@ -27,8 +27,7 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
     rows, summaries = [], []
     for driver in drivers:
         env = ExitDecisionEnv(config, cav_driver='sumo' if driver == 'sumo' else 'policy')
-        controller = None if driver == 'sumo' else RuleBasedDriver(
-            env.actions, env.shield, env.sim.geometry, config.scenario.road.ramp_speed_limit)
+        controller = None if driver == 'sumo' else RuleBasedDriver.for_env(env)
         rows.append((driver, evaluate(env, controller, seeds), env))
         env.close()
     for path in policies:

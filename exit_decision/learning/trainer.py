@@ -67,8 +67,7 @@ class Trainer:
         self.replay = ReplayBuffer(t.replay_size, n, self.shape.num_features, self.grid.size)
         self.demos = ReplayBuffer(max(1, 250 * t.demonstrations.episodes), n, self.shape.num_features,
                                   self.grid.size)
-        self.demonstrator = RuleBasedDriver(self.grid, self.shield, self.env.sim.geometry,
-                                            config.scenario.road.ramp_speed_limit)
+        self.demonstrator = RuleBasedDriver.for_env(self.env)
         self.state = TrainingState()
 
     # --- schedules --------------------------------------------------------------------------

@@ -11,14 +11,19 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, TrafficGraph as GraphMsg,
-                                    VehicleState as VehicleStateMsg, VehicleStateArray)
+from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, EpisodeEvent,
+                                    TrafficGraph as GraphMsg, VehicleState as VehicleStateMsg, VehicleStateArray)
 
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
 
 CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
 CLASS_NAMES = {code: name for name, code in CLASS_CODES.items()}
+#: episode metric (exit_decision.evaluation.metrics) -> EpisodeEvent field; counts are uint32
+EVENT_METRICS = {'v_AVs': 'v_avs', 'v_s': 'v_s', 'p_collision': 'p_collision', 'p_collision_CAV': 'p_collision_cav',
+                 'N_braking': 'n_braking', 'braking_steps': 'braking_steps', 'p_CAV': 'p_cav', 'p_HV2': 'p_hv2',
+                 'reward': 'reward'}
+EVENT_COUNTS = {'n_braking', 'braking_steps'}
 
 
 class MessageError(ValueError):
@@ -123,3 +128,21 @@ def commands_from_msg(msg: CavCommandArray) -> dict[str, CavCommand]:
             raise MessageError(f'commands: {command.vehicle_id!r} acceleration is not finite')
         commands[command.vehicle_id] = CavCommand(int(command.lane_change), float(command.acceleration))
     return commands
+
+
+def episode_event_to_msg(event: int, *, episode: int, seed: int, steps: int, time: float,
+                         metrics: Mapping[str, float] | None = None, truncated: bool = False) -> EpisodeEvent:
+    """An episode start (no metrics) or end (with the episode's metrics)."""
+    msg = EpisodeEvent(episode=episode, seed=seed, event=event, steps=steps, truncated=truncated)
+    msg.header.stamp = stamp_of(time)
+    if metrics:
+        for metric, name in EVENT_METRICS.items():
+            setattr(msg, name, int(metrics[metric]) if name in EVENT_COUNTS else metrics[metric])
+    return msg
+
+
+def metrics_from_event(msg: EpisodeEvent) -> dict[str, float]:
+    """The metrics of an episode-end event, keyed as the evaluation tables are."""
+    return {'episode': msg.episode, 'seed': msg.seed,
+            **{metric: float(getattr(msg, name)) for metric, name in EVENT_METRICS.items()},
+            'steps': float(msg.steps)}

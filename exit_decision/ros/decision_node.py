@@ -52,8 +52,7 @@ class DecisionNode(Node):
         algorithms = list(p('algorithms', list(ALGORITHMS), describe(
             'algorithms whose policies are loaded at start', read_only=True)).value)
         self.grid = ActionGrid(config.env.actions)
-        self.shield = Shield(config.env.shield, self.grid, RoadGeometry.of(config.scenario.road),
-                             config.env.decision_interval * config.scenario.step_length)
+        self.shield = Shield.of(config, self.grid, RoadGeometry.of(config.scenario.road))
         self.controllers: dict[tuple[str, str], PolicyController] = {}
         for algorithm in algorithms:
             for mode in modes:

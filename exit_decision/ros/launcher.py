@@ -17,17 +17,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import rclpy
 from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, STREAM_QOS
-
-EXECUTABLES = {'sumo_bridge': 'sumo_bridge', 'graph_builder': 'graph_builder',
-               'decision_node': 'decision_node', 'recorder': 'recorder'}
-
+from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode
+from exit_decision.ros.conversions import metrics_from_event
 
 def executable(name: str) -> list[str]:
     """The installed ament executable, or the module when running from a checkout only."""
@@ -64,7 +59,7 @@ class StackLauncher:
         log = open(self.log_dir / f'{name}.log', 'w')
         env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
         self.processes[name] = subprocess.Popen(
-            executable(EXECUTABLES[name]) + ros_args(self.parameters.get(name, {})),
+            executable(name) + ros_args(self.parameters.get(name, {})),
             stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
     def check_alive(self) -> None:
@@ -108,21 +103,14 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
         parameters[name].update(values)
     launcher = StackLauncher(parameters, log_dir)
     run = StackRun(bag_path)
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('stack_launcher', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    probe = ProbeNode('stack_launcher')
+    node, executor = probe.node, probe.executor
     state = {'step': -1, 'episode': -1, 'ended': 0}
 
     def on_event(msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_ENDED:
             state['ended'] += 1
-            run.episodes.append({'episode': msg.episode, 'seed': msg.seed, 'v_AVs': msg.v_avs, 'v_s': msg.v_s,
-                                 'p_collision': msg.p_collision, 'p_collision_CAV': msg.p_collision_cav,
-                                 'N_braking': float(msg.n_braking), 'braking_steps': float(msg.braking_steps),
-                                 'p_CAV': msg.p_cav, 'p_HV2': msg.p_hv2, 'reward': msg.reward,
-                                 'steps': float(msg.steps)})
+            run.episodes.append(metrics_from_event(msg))
 
     def on_states(msg: VehicleStateArray) -> None:
         state['step'], state['episode'] = msg.step, msg.episode
@@ -162,8 +150,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
             executor.spin_once(timeout_sec=0.1)
     finally:
         run.return_codes = launcher.stop()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        probe.close()
     return run
 
 

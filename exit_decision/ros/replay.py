@@ -48,8 +48,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         if topic == COMMANDS_TOPIC:
             recorded.append(msg)
     grid = ActionGrid(config.env.actions)
-    shield = Shield(config.env.shield, grid, RoadGeometry.of(config.scenario.road),
-                    config.env.decision_interval * config.scenario.step_length)
+    shield = Shield.of(config, grid, RoadGeometry.of(config.scenario.road))
     controllers: dict[Path, PolicyController] = {}
     report = ReplayReport()
     for msg in recorded:

@@ -24,7 +24,8 @@ from rosgraph_msgs.msg import Clock
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
                                       STATES_TOPIC, STREAM_QOS, Diagnostics, declare_config, describe, run_node)
-from exit_decision.ros.conversions import MessageError, commands_from_msg, stamp_of, states_to_msg
+from exit_decision.ros.conversions import (MessageError, commands_from_msg, episode_event_to_msg, stamp_of,
+                                           states_to_msg)
 from exit_decision.scenario.simulation import CommandError
 
 
@@ -130,15 +131,10 @@ class SumoBridge(Node):
                                               step_length=self.step_length))
 
     def publish_event(self, event: int, seed: int, result) -> None:
-        msg = EpisodeEvent(episode=self.episode, seed=seed, event=event, steps=result.step)
-        msg.header.stamp = stamp_of(result.time)
-        if event == EpisodeEvent.EVENT_ENDED:
-            m = self.env.episode_log.metrics()
-            msg.truncated = bool(result.truncated and not result.terminated)
-            msg.v_avs, msg.v_s, msg.p_collision = m['v_AVs'], m['v_s'], m['p_collision']
-            msg.p_collision_cav, msg.p_cav, msg.p_hv2, msg.reward = (
-                m['p_collision_CAV'], m['p_CAV'], m['p_HV2'], m['reward'])
-            msg.n_braking, msg.braking_steps = int(m['N_braking']), int(m['braking_steps'])
+        m = self.env.episode_log.metrics() if event == EpisodeEvent.EVENT_ENDED else None
+        msg = episode_event_to_msg(event, episode=self.episode, seed=seed, steps=result.step, time=result.time,
+                                   metrics=m, truncated=bool(m and result.truncated and not result.terminated))
+        if m:
             self.get_logger().info(f'episode {self.episode} (seed {seed}) ended after {result.step} steps: '
                                    f'p_CAV {m["p_CAV"]:.3f}, p_collision_CAV {m["p_collision_CAV"]:.3f}, '
                                    f'v_AVs {m["v_AVs"]:.2f} m/s')

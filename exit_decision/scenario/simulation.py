@@ -182,8 +182,9 @@ class HighwaySimulation:
     def _apply_hv2_rule(self) -> None:
         """HV2 moves one lane right whenever the right lane is clear within the clearance.
 
-        Not in a diverge zone or on its junction (``lane_change_allowed``), and a vehicle that has just taken a ramp still occupies lane 0
-        near the diverge, so ramp vehicles count as lane-0 traffic for the clearance.
+        Not in a diverge zone or on its junction (``lane_change_allowed``), and a vehicle that
+        has just taken a ramp still occupies lane 0 near the diverge, so ramp vehicles count as
+        lane-0 traffic for the clearance.
         """
         clearance = self.scenario.vehicle_classes['HV2'].right_change_clearance
         for vehicle in self._last.vehicles:
