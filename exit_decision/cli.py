@@ -173,6 +173,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def reference_driver(text: str) -> str:
+    """``sumo``, ``rule_based`` or ``rule_based:<MODE>`` (the mode is checked against the config later)."""
+    name, colon, mode = text.partition(':')
+    if name == 'sumo' and not colon or name == 'rule_based' and (not colon or mode):
+        return text
+    raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<MODE>')
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='exit-decision', description=__doc__)
     commands = parser.add_subparsers(dest='command', required=True)
@@ -205,8 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
     _common(evaluate)
     evaluate.add_argument('--policy', type=Path, action='append', default=[], help='a policy.pt (repeatable)')
-    evaluate.add_argument('--driver', action='append', default=[], choices=['sumo', 'rule_based'],
-                          help='a reference driver (repeatable)')
+    evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
+                          help='a reference driver (repeatable): sumo, rule_based (env.yaml\'s), or '
+                               'rule_based:<MODE> (the demonstrator of that mode)')
     evaluate.add_argument('--episodes', type=int, default=50)
     evaluate.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),

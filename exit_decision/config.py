@@ -122,6 +122,8 @@ class ModeConfig(Strict):
     decision_weights: SubRewardValues
     incentive: Probability
     punishment: Probability
+    # keys of env.yaml's rule_based: the mode's demonstrator differs from the default driver
+    rule_based: dict[str, float] = Field(default_factory=dict)
 
 
 class ModesConfig(Strict):
@@ -197,10 +199,23 @@ class ShieldConfig(Strict):
     human_follower_distance: NonNegativeFloat
 
 
+class RuleBasedConfig(Strict):
+    """The rule-based driver (demonstrator and baseline); see agents/rule_based.py."""
+    max_acceleration: PositiveFloat
+    comfortable_braking: PositiveFloat
+    time_headway: NonNegativeFloat
+    standstill_gap: NonNegativeFloat
+    gap_search_speed: NonNegativeFloat
+    firm_braking: PositiveFloat
+    urgent_braking: PositiveFloat
+    urgency_distance: PositiveFloat
+
+
 class EnvConfig(Strict):
     decision_interval: PositiveInt
     actions: ActionGridConfig
     shield: ShieldConfig
+    rule_based: RuleBasedConfig
     reward_variant: str
     mode: str
 
@@ -331,6 +346,11 @@ class ProjectConfig(BaseModel):
             raise ConfigError(f'unknown mode {name!r}; known modes: {", ".join(self.modes)}')
         return self.modes[name]
 
+    def rule_based(self, mode: str) -> RuleBasedConfig:
+        """The rule-based driver of a mode: env.yaml's, with the mode's own keys over it."""
+        return parse(RuleBasedConfig, {**self.env.rule_based.model_dump(), **self.mode(mode).rule_based},
+                     f'modes.yaml modes.{mode}.rule_based (over env.yaml rule_based)')
+
     def reward(self, name: str) -> MatrixRewardConfig | BaselineRewardConfig:
         if name not in self.rewards:
             raise ConfigError(f'unknown reward variant {name!r}; known: {", ".join(self.rewards)}')
@@ -375,4 +395,6 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
                            training=parsed['training'])
     config.mode(config.env.mode)
     config.reward(config.env.reward_variant)
+    for name in config.modes:
+        config.rule_based(name)
     return config

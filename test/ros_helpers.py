@@ -1,5 +1,4 @@
 """Helpers for the ROS integration tests: small config, random policies, node processes."""
-import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -12,7 +11,6 @@ from exit_decision.config import default_config_dir, load_project
 from exit_decision.graph import FEATURE_SETS
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape
 from exit_decision.policy import save_policy
-from exit_decision.ros.launcher import executable, ros_args
 
 SMALL_TRAFFIC = {'HV1': 4, 'HV2': 2, 'HV3': 2, 'CAV': 4}
 
@@ -40,11 +38,6 @@ def random_policies(config_dir: Path, target: Path, modes=('AGGI', 'AGGP', 'CONI
             'feature_set': config.graph.feature_set, 'decision_interval': config.env.decision_interval,
             'action_grid': config.env.actions.model_dump()})
     return target
-
-
-def start_node(name: str, parameters: dict, log: Path) -> subprocess.Popen:
-    return subprocess.Popen(executable(name) + ros_args(parameters), stdout=open(log, 'w'),
-                            stderr=subprocess.STDOUT, env={**os.environ}, start_new_session=True)
 
 
 def stop(process: subprocess.Popen, sig=2, timeout=10.0) -> int:

@@ -12,10 +12,10 @@ from exit_decision.config import load_project
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC,
                                       STREAM_QOS, ProbeNode)
-from exit_decision.ros.launcher import run_stack
+from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
 
-from ros_helpers import random_policies, small_config_dir, start_node, stop
+from ros_helpers import random_policies, small_config_dir, stop
 
 
 @pytest.fixture(scope='module')

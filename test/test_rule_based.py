@@ -16,7 +16,8 @@ def driver(project_config):
     geometry = RoadGeometry.of(project_config.scenario.road)
     grid = ActionGrid(project_config.env.actions)
     shield = Shield(project_config.env.shield, grid, geometry, 0.5)
-    return RuleBasedDriver(grid, shield, geometry, project_config.scenario.road.ramp_speed_limit)
+    return RuleBasedDriver(grid, shield, geometry, project_config.scenario.road.ramp_speed_limit,
+                           project_config.env.rule_based)
 
 
 def decide(driver, vehicles):

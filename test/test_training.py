@@ -27,8 +27,11 @@ def rows(path):
 
 
 def test_short_training_run_gives_finite_losses_and_an_evaluable_policy(config_dir, tmp_path):
-    config = load_project(config_dir, overrides=[TINY])
-    policy_path = Trainer(config, 'mdgqn', 'AGGI', 0, tmp_path / 'run').run(episodes=2, progress=False)
+    own_demonstrator = {'modes': {'modes': {'AGGI': {'rule_based': {'time_headway': 0.9}}}}}
+    config = load_project(config_dir, overrides=[TINY, own_demonstrator])
+    trainer = Trainer(config, 'mdgqn', 'AGGI', 0, tmp_path / 'run')
+    assert trainer.demonstrator.parameters.time_headway == 0.9, "the mode's demonstrator, not env.yaml's"
+    policy_path = trainer.run(episodes=2, progress=False)
     log = rows(tmp_path / 'run' / 'training.csv')
     assert len(log) == 2
     assert all(math.isfinite(float(row['loss'])) for row in log)
@@ -36,10 +39,10 @@ def test_short_training_run_gives_finite_losses_and_an_evaluable_policy(config_d
     policy = load_policy(policy_path)
     assert policy.metadata['algorithm'] == 'mdgqn' and policy.metadata['mode'] == 'AGGI'
     assert policy.metadata['multi_step'] == 3
-    evaluate_runs(config, [policy_path], ['rule_based'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
-                  command='test')
+    evaluate_runs(config, [policy_path], ['rule_based', 'rule_based:AGGI'], episodes=1, seed=10_000,
+                  out_dir=tmp_path / 'eval', command='test')
     summary = read_summary(tmp_path / 'eval' / 'summary.csv')
-    assert set(summary) == {'rule_based', 'mdgqn_AGGI'}
+    assert set(summary) == {'rule_based', 'rule_based_AGGI', 'mdgqn_AGGI'}
     assert 0.0 <= summary['mdgqn_AGGI']['p_CAV'][0] <= 1.0
     assert (tmp_path / 'eval' / 'mdgqn_AGGI_actions.csv').exists()
 

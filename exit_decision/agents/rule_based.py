@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Decision, Shield
+from exit_decision.config import RuleBasedConfig
 from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot, VehicleState
@@ -25,33 +25,22 @@ if TYPE_CHECKING:
     from exit_decision.env import ExitDecisionEnv
 
 
-@dataclass(frozen=True)
-class IdmParameters:
-    max_acceleration: float = 2.5      # [m/s^2]
-    comfortable_braking: float = 3.0   # [m/s^2]
-    time_headway: float = 1.2          # [s] (1.0 s, as SUMO's drivers, was 0.6 m/s faster but imitated worse)
-    standstill_gap: float = 2.5        # [m]
-    gap_search_speed: float = 4.0      # [m/s] slower / faster than the target lane while looking for a gap
-    firm_braking: float = 3.5          # [m/s^2] the most the rules brake by themselves
-    urgent_braking: float = 4.5        # [m/s^2] braking accepted for a lane change at the deadline
-    urgency_distance: float = 200.0    # [m] before the deadline, lane changes become urgent
-
-
 class RuleBasedDriver:
     name = 'rule_based'
 
     def __init__(self, grid: ActionGrid, shield: Shield, geometry: RoadGeometry,
-                 ramp_speed_limit: float, idm: IdmParameters = IdmParameters()):
+                 ramp_speed_limit: float, parameters: RuleBasedConfig):
         self.grid = grid
         self.shield = shield
         self.geometry = geometry
         self.ramp_speed_limit = ramp_speed_limit
-        self.idm_parameters = idm
+        self.parameters = parameters
 
     @classmethod
     def for_env(cls, env: ExitDecisionEnv) -> RuleBasedDriver:
-        """The driver for an environment's CAVs: its action grid, shield and road."""
-        return cls(env.actions, env.shield, env.sim.geometry, env.config.scenario.road.ramp_speed_limit)
+        """The driver for an environment's CAVs: its action grid, shield, road and mode."""
+        return cls(env.actions, env.shield, env.sim.geometry, env.config.scenario.road.ramp_speed_limit,
+                   env.config.rule_based(env.mode))
 
     def target_lane(self, vehicle: VehicleState) -> int:
         if vehicle.position < self.geometry.merge_done_at['Highway_0']:
@@ -67,12 +56,12 @@ class RuleBasedDriver:
             # slow to the ramp's limit by the Exit_1 diverge, braking comfortably
             distance = max(self.geometry.diverge_at['Highway_1'] - vehicle.position, 0.0)
             limit = min(limit, math.sqrt(self.ramp_speed_limit ** 2
-                                         + 2 * self.idm_parameters.comfortable_braking * distance))
+                                         + 2 * self.parameters.comfortable_braking * distance))
         return limit
 
     def idm(self, speed: float, desired: float, gap: float | None, leader_speed: float) -> float:
         """IDM acceleration; ``gap`` None means no leader."""
-        p = self.idm_parameters
+        p = self.parameters
         free = 1.0 - (speed / desired) ** 4 if desired > 0 else -1.0
         if gap is None:
             return p.max_acceleration * free
@@ -92,14 +81,14 @@ class RuleBasedDriver:
         """0 far from the diverge where the lane must be reached, rising to 1 at its last metres."""
         deadline_edge = 'Highway_0' if vehicle.position < self.geometry.merge_done_at['Highway_0'] else 'Highway_1'
         remaining = self.geometry.diverge_at[deadline_edge] - self.geometry.commit_distance - vehicle.position
-        return float(np.clip(1.0 - remaining / self.idm_parameters.urgency_distance, 0.0, 1.0))
+        return float(np.clip(1.0 - remaining / self.parameters.urgency_distance, 0.0, 1.0))
 
     def change_is_acceptable(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot) -> bool:
         """MOBIL's safety criterion: after the change neither the CAV nor its new follower has
         to brake harder than the accepted braking, which grows from the comfortable one to the
         urgent one as the diverge nears."""
         lane = vehicle.lane_index + lane_change
-        p = self.idm_parameters
+        p = self.parameters
         limit = -(p.comfortable_braking + (p.urgent_braking - p.comfortable_braking) * self.urgency(vehicle))
         if self.acceleration(vehicle, snapshot, lane) < limit:
             return False
@@ -130,7 +119,7 @@ class RuleBasedDriver:
         half pulls ahead rides alongside a follower that slows with it (near the exit, where
         both slow for the ramp), and the change never comes (measured: 16 of 300 CAVs missed
         Exit_1 that way on the demonstration seeds, 0 with this rule)."""
-        p = self.idm_parameters
+        p = self.parameters
         around = snapshot.neighbours(('Highway', vehicle.lane_index + lane_change), vehicle.position,
                                      vehicle.length, exclude=vehicle.vehicle_id)
         if around.leader is None and around.follower is None:

@@ -26,9 +26,10 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
     seeds = list(range(seed, seed + episodes))
     rows, summaries = [], []
     for driver in drivers:
-        env = ExitDecisionEnv(config, cav_driver='sumo' if driver == 'sumo' else 'policy')
-        controller = None if driver == 'sumo' else RuleBasedDriver.for_env(env)
-        rows.append((driver, evaluate(env, controller, seeds), env))
+        name, _, mode = driver.partition(':')   # rule_based:AGGI = that mode's demonstrator
+        env = ExitDecisionEnv(config, mode=mode or None, cav_driver='sumo' if name == 'sumo' else 'policy')
+        controller = None if name == 'sumo' else RuleBasedDriver.for_env(env)
+        rows.append((driver.replace(':', '_'), evaluate(env, controller, seeds), env))
         env.close()
     for path in policies:
         policy = load_policy(path)

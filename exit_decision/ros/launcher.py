@@ -40,6 +40,14 @@ def ros_args(parameters: dict[str, object]) -> list[str]:
     return args
 
 
+def start_node(name: str, parameters: dict[str, object], log: Path) -> subprocess.Popen:
+    """One node as its own process (own session, so a Ctrl-C in a terminal reaches only us),
+    DDS kept on this machine, output to ``log``."""
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    return subprocess.Popen(executable(name) + ros_args(parameters), stdout=open(log, 'w'),
+                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
 @dataclass
 class StackRun:
     bag_path: Path
@@ -56,11 +64,7 @@ class StackLauncher:
 
     def start(self, name: str) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        log = open(self.log_dir / f'{name}.log', 'w')
-        env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-        self.processes[name] = subprocess.Popen(
-            executable(name) + ros_args(self.parameters.get(name, {})),
-            stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        self.processes[name] = start_node(name, self.parameters.get(name, {}), self.log_dir / f'{name}.log')
 
     def check_alive(self) -> None:
         for name, process in self.processes.items():
