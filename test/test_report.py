@@ -1,5 +1,7 @@
 """The results page's target and ordering checks on hand-made numbers."""
-from exit_decision.evaluation.report import target_checks
+import json
+
+from exit_decision.evaluation.report import demonstrator_headway, target_checks
 
 
 def runs(**values):
@@ -22,3 +24,13 @@ def test_targets_and_orderings_are_checked_on_the_numbers():
     assert 'MDGQN: AGGP faster than CONP (16.50 vs 16.80 m/s): does not hold' in text
     assert 'AGGI: MDGQN at least as good as GQN' in text and 'holds' in text
     assert 'faster than the SUMO reference (15.70 m/s) at p_collision_CAV <= 0.01: holds (mdgqn_AGGI, mdgqn_AGGP, gqn_AGGI)' in text
+
+
+def test_a_policy_line_names_the_demonstrator_its_mode_learned_from(tmp_path):
+    config = {'env': {'rule_based': {'time_headway': 1.2}},
+              'modes': {'AGGI': {'rule_based': {'time_headway': 1.0}}, 'CONP': {}}}
+    for mode, expected in (('AGGI', '1'), ('CONP', '1.2')):
+        path = tmp_path / f'{mode}.json'
+        path.write_text(json.dumps({'mode': mode, 'config': config}))
+        assert demonstrator_headway(path) == f'; demonstrator headway {expected} s'
+    assert demonstrator_headway(tmp_path / 'missing.json') == ''

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -136,8 +137,19 @@ def policy_selection(policies_dir: Path) -> list[str]:
                          for r in read_rows(history)) if history.exists() else 'no log'
         lines.append(f'- {path.parent.name}: kept from episode {validation.get("episode", "?"):g} '
                      f'(validation on {episodes} episodes: p_CAV {validation.get("p_CAV", float("nan")):.3f}, '
-                     f'p_collision_CAV {validation.get("p_collision_CAV", float("nan")):.3f}); all runs: {runs}')
+                     f'p_collision_CAV {validation.get("p_collision_CAV", float("nan")):.3f}); all runs: {runs}'
+                     + demonstrator_headway(path.parent / 'config.json'))
     return lines
+
+
+def demonstrator_headway(run_config: Path) -> str:
+    """'; demonstrator headway 1.0 s' from a run's config.json (env.yaml's driver under the mode's keys)."""
+    if not run_config.exists():
+        return ''
+    run = json.loads(run_config.read_text())
+    config = run['config']
+    driver = {**config['env'].get('rule_based', {}), **config['modes'][run['mode']].get('rule_based', {})}
+    return f'; demonstrator headway {driver["time_headway"]:g} s' if 'time_headway' in driver else ''
 
 
 def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: Path, out: Path) -> Path:
