@@ -61,7 +61,7 @@ class ExitDecisionEnv(gym.Env):
         episode_seed = seed if seed is not None else int(self.np_random.integers(2**31 - 1))
         result = self.sim.reset(episode_seed)
         self.graph_builder.reset()
-        self.graph = self.graph_builder.build(result.vehicles)
+        self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
         self.episode_log = EpisodeLog(self.config.scenario.emergency_braking_threshold)
         self._lane_changes = deque(maxlen=self._window)
         return self._observation(), {'seed': episode_seed}
@@ -99,7 +99,7 @@ class ExitDecisionEnv(gym.Env):
             results.append(result)
             if result.terminated or result.truncated:
                 break
-        self.graph = self.graph_builder.build(result.vehicles)
+        self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
         info = {'step_results': results}
         return self._observation(), total, result.terminated, result.truncated and not result.terminated, info
 

@@ -98,7 +98,8 @@ class GraphBuilder:
             result.append(slot)
         return result
 
-    def build(self, vehicles: Sequence[VehicleState]) -> TrafficGraph:
+    def build(self, vehicles: Sequence[VehicleState], snapshot: TrafficSnapshot | None = None) -> TrafficGraph:
+        """The graph of one step; ``snapshot``: these vehicles' TrafficSnapshot if the caller has one."""
         n = self.config.max_vehicles
         rows = np.asarray(self.slots(vehicles), dtype=np.intp)
         features = np.zeros((n, self.num_features), dtype=np.float32)
@@ -124,13 +125,13 @@ class GraphBuilder:
             adjacency[np.ix_(rows, rows)] = links
             cav_mask[rows] = is_cav
             if self.config.feature_set == 'relative':
-                features[rows, len(PAPER_FEATURES):] = self.relative_features(vehicles)
+                features[rows, len(PAPER_FEATURES):] = self.relative_features(
+                    vehicles, snapshot or TrafficSnapshot(vehicles))
             for row, vehicle in zip(rows, vehicles):
                 ids[row] = vehicle.vehicle_id
         return TrafficGraph(features, adjacency, cav_mask, tuple(ids))
 
-    def relative_features(self, vehicles: Sequence[VehicleState]) -> np.ndarray:
-        snapshot = TrafficSnapshot(vehicles)
+    def relative_features(self, vehicles: Sequence[VehicleState], snapshot: TrafficSnapshot) -> np.ndarray:
         result = np.zeros((len(vehicles), 4 * len(LANE_OFFSETS)), dtype=np.float32)
         for i, vehicle in enumerate(vehicles):
             for j, offset in enumerate(LANE_OFFSETS.values()):

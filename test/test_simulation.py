@@ -81,7 +81,7 @@ def test_lane_changes_move_one_lane_and_never_off_the_road(project_config):
     with HighwaySimulation(only(project_config, CAV=(1, 2)), cav_driver='policy') as sim:
         sim.reset(0)
         cav = sim.step().vehicles[0]
-        assert not sim.lane_change_allowed(cav, +1)
+        assert not sim.geometry.lane_change_exists(cav, +1)
         cav = sim.step({cav.vehicle_id: CavCommand(+1, 0.0)}).vehicles[0]
         assert cav.lane_index == 2 and cav.intention == 0, 'a change off the road is not made'
         cav = sim.step({cav.vehicle_id: CavCommand(-1, 0.0)}).vehicles[0]

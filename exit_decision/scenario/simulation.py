@@ -145,10 +145,6 @@ class HighwaySimulation:
                 raise CommandError(f'{vehicle_id!r}: acceleration must be finite, '
                                    f'got {command.acceleration!r}')
 
-    def lane_change_allowed(self, vehicle: VehicleState, lane_change: int) -> bool:
-        """A lane change exists (target lane on the road) and is not in a diverge zone."""
-        return self.geometry.lane_change_exists(vehicle, lane_change)
-
     def step(self, commands: Mapping[str, CavCommand] | None = None) -> StepResult:
         """Apply commands (new decisions; other CAVs hold theirs), then advance one step."""
         commands = commands or {}
@@ -161,7 +157,7 @@ class HighwaySimulation:
             command = commands.get(vehicle.vehicle_id)
             if command is not None:
                 self._held_acceleration[vehicle.vehicle_id] = command.acceleration
-                lane_change = command.lane_change if self.lane_change_allowed(
+                lane_change = command.lane_change if self.geometry.lane_change_exists(
                     vehicle, command.lane_change) else 0
                 self._intention[vehicle.vehicle_id] = lane_change
                 if lane_change:
@@ -182,13 +178,13 @@ class HighwaySimulation:
     def _apply_hv2_rule(self) -> None:
         """HV2 moves one lane right whenever the right lane is clear within the clearance.
 
-        Not in a diverge zone or on its junction (``lane_change_allowed``), and a vehicle that
+        Not in a diverge zone or on its junction (``RoadGeometry.lane_change_exists``), and a vehicle that
         has just taken a ramp still occupies lane 0 near the diverge, so ramp vehicles count as
         lane-0 traffic for the clearance.
         """
         clearance = self.scenario.vehicle_classes['HV2'].right_change_clearance
         for vehicle in self._last.vehicles:
-            if vehicle.vehicle_class != 'HV2' or not self.lane_change_allowed(vehicle, -1):
+            if vehicle.vehicle_class != 'HV2' or not self.geometry.lane_change_exists(vehicle, -1):
                 continue
             target = [self._snapshot.neighbours_of(vehicle, lane_offset=-1)]
             if vehicle.lane_index == 1:
