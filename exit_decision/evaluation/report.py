@@ -167,8 +167,10 @@ def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: P
              f'Per-episode values and action counts: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
              *policy_selection(Path('policies')), '',
              '## Targets and expected orderings', '', *target_checks(read_summary(evaluation_dir / 'summary.csv')), '',
-             'What was tried to reach them, with its measurements: [`design.md`](design.md), sections '
-             '"Rule-based driver" and "Learning".', '']
+             'Each policy above names its demonstrator\'s time headway: where the modes imitate '
+             'different demonstrators, the speed orderings between them come from the demonstrators '
+             'as much as from the reward matrix. What was tried to reach the targets, with its '
+             'measurements: [`design.md`](design.md), sections "Rule-based driver" and "Learning".', '']
     if ablation_csv is not None and ablation_csv.exists():
         parts += ['## Ablation: from the paper taken literally to our setting', '',
                   'Each step adds one measure to the previous (config/ablation.yaml); every step is trained with '
