@@ -126,7 +126,7 @@ class GraphBuilder:
             cav_mask[rows] = is_cav
             if self.config.feature_set == 'relative':
                 features[rows, len(PAPER_FEATURES):] = self.relative_features(
-                    vehicles, snapshot or TrafficSnapshot(vehicles))
+                    vehicles, TrafficSnapshot(vehicles) if snapshot is None else snapshot)
             for row, vehicle in zip(rows, vehicles):
                 ids[row] = vehicle.vehicle_id
         return TrafficGraph(features, adjacency, cav_mask, tuple(ids))
