@@ -107,7 +107,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Write the results page from evaluation, ablation and figures."""
     from exit_decision.evaluation.report import results_page
 
-    print(results_page(args.evaluation, args.ablation, args.figures, args.out))
+    print(results_page(args.evaluation, args.ablation, args.figures, args.out,
+                       max_steps=load_project().scenario.max_steps))
     return 0
 
 

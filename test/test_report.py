@@ -1,7 +1,7 @@
 """The results page's target and ordering checks on hand-made numbers."""
 import json
 
-from exit_decision.evaluation.report import demonstrator_headway, target_checks
+from exit_decision.evaluation.report import demonstrator_headway, step_cap_lines, target_checks
 
 
 def runs(**values):
@@ -34,3 +34,12 @@ def test_a_policy_line_names_the_demonstrator_its_mode_learned_from(tmp_path):
         path.write_text(json.dumps({'mode': mode, 'config': config}))
         assert demonstrator_headway(path) == f'; demonstrator headway {expected} s'
     assert demonstrator_headway(tmp_path / 'missing.json') == ''
+
+
+def test_episodes_cut_by_the_step_cap_are_counted_per_run(tmp_path):
+    from exit_decision.tables import write_rows
+    write_rows(tmp_path / 'mdgqn_AGGI.csv', [{'steps': 1500.0}, {'steps': 800.0}, {'steps': 1500.0}])
+    write_rows(tmp_path / 'sumo.csv', [{'steps': 820.0}])
+    write_rows(tmp_path / 'mdgqn_AGGI_actions.csv', [{'steps': 1500.0}])
+    assert step_cap_lines(tmp_path, 1500) == ['- mdgqn_AGGI: 2 of 3 episodes ran into the 1500-step cap']
+    assert step_cap_lines(tmp_path, 2000) == ['- none: no episode ran into the 2000-step cap']

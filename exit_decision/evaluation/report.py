@@ -152,7 +152,22 @@ def demonstrator_headway(run_config: Path) -> str:
     return f'; demonstrator headway {driver["time_headway"]:g} s' if 'time_headway' in driver else ''
 
 
-def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: Path, out: Path) -> Path:
+def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
+    """Per run, the test episodes that ran into the step cap: a CAV stopped on the road held
+    the traffic up until the episode was cut (its exit rate alone does not show this)."""
+    lines = []
+    for path in sorted(evaluation_dir.glob('*.csv')):
+        if path.name == 'summary.csv' or path.stem.endswith('_actions'):
+            continue
+        rows = read_rows(path)
+        capped = sum(float(row['steps']) >= max_steps for row in rows)
+        if capped:
+            lines.append(f'- {path.stem}: {capped} of {len(rows)} episodes ran into the {max_steps}-step cap')
+    return lines or [f'- none: no episode ran into the {max_steps}-step cap']
+
+
+def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: Path, out: Path,
+                 max_steps: int) -> Path:
     """docs/results.md from the generated artefacts: nothing in it is typed by hand."""
     from exit_decision.learning.ablation import markdown as ablation_markdown
 
@@ -166,6 +181,7 @@ def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: P
              '## Evaluation (test seeds never used in training)', '', summary_md[2].strip(), '',
              f'Per-episode values and action counts: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
              *policy_selection(Path('policies')), '',
+             '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
              '## Targets and expected orderings', '', *target_checks(read_summary(evaluation_dir / 'summary.csv')), '',
              'Each policy above names its demonstrator\'s time headway: where the modes imitate '
              'different demonstrators, the speed orderings between them come from the demonstrators '
