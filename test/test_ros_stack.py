@@ -40,7 +40,10 @@ def set_parameter(test: ProbeNode, node_name: str, name: str, value):
     client = test.node.create_client(SetParameters, f'/{node_name}/set_parameters')
     assert test.spin_until(client.service_is_ready, 30), f'{node_name} parameter service not up'
     future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
-    test.executor.spin_until_future_complete(future, timeout_sec=10)
+    # the service is discoverable as soon as the node exists, but answered only once it spins
+    # (after loading its policies): allow for a slow first start on a fresh machine
+    test.executor.spin_until_future_complete(future, timeout_sec=60)
+    assert future.done(), f'{node_name} did not answer set_parameters within 60 s'
     return future.result().results[0]
 
 
