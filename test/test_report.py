@@ -1,6 +1,7 @@
 """The results page's target and ordering checks on hand-made numbers."""
 import json
 
+from exit_decision.config import load_project
 from exit_decision.evaluation.report import demonstrator_headway, step_cap_lines, target_checks
 
 
@@ -27,8 +28,9 @@ def test_targets_and_orderings_are_checked_on_the_numbers():
 
 
 def test_a_policy_line_names_the_demonstrator_its_mode_learned_from(tmp_path):
-    config = {'env': {'rule_based': {'time_headway': 1.2}},
-              'modes': {'AGGI': {'rule_based': {'time_headway': 1.0}}, 'CONP': {}}}
+    config = load_project(overrides=[{'env': {'rule_based': {'time_headway': 1.2}},
+                                      'modes': {'modes': {'AGGI': {'rule_based': {'time_headway': 1.0}},
+                                                          'CONP': {'rule_based': {}}}}}]).model_dump(mode='json')
     for mode, expected in (('AGGI', '1'), ('CONP', '1.2')):
         path = tmp_path / f'{mode}.json'
         path.write_text(json.dumps({'mode': mode, 'config': config}))

@@ -6,7 +6,6 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from exit_decision_msgs.msg import CavCommand, CavCommandArray, TrafficGraph as GraphMsg, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
 
 from exit_decision.config import load_project
 from exit_decision.ros.bags import read_messages
@@ -39,12 +38,11 @@ def diagnostics_of(test: ProbeNode, name: str) -> dict:
 def set_parameter(test: ProbeNode, node_name: str, name: str, value):
     client = test.node.create_client(SetParameters, f'/{node_name}/set_parameters')
     assert test.spin_until(client.service_is_ready, 30), f'{node_name} parameter service not up'
-    future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
     # the service is discoverable as soon as the node exists, but answered only once it spins
     # (after loading its policies): allow for a slow first start on a fresh machine
-    test.executor.spin_until_future_complete(future, timeout_sec=60)
-    assert future.done(), f'{node_name} did not answer set_parameters within 60 s'
-    return future.result().results[0]
+    result = test.set_parameter(client, name, value, timeout=60)
+    assert result is not None, f'{node_name} did not answer set_parameters within 60 s'
+    return result
 
 
 def test_stack_runs_switches_mode_records_and_replays(setup):

@@ -143,13 +143,12 @@ def policy_selection(policies_dir: Path) -> list[str]:
 
 
 def demonstrator_headway(run_config: Path) -> str:
-    """'; demonstrator headway 1.0 s' from a run's config.json (env.yaml's driver under the mode's keys)."""
+    """'; demonstrator headway 1 s' from a run's config.json (the config that made the run)."""
     if not run_config.exists():
         return ''
     run = json.loads(run_config.read_text())
-    config = run['config']
-    driver = {**config['env'].get('rule_based', {}), **config['modes'][run['mode']].get('rule_based', {})}
-    return f'; demonstrator headway {driver["time_headway"]:g} s' if 'time_headway' in driver else ''
+    driver = ProjectConfig.model_validate(run['config']).rule_based(run['mode'])
+    return f'; demonstrator headway {driver.time_headway:g} s'
 
 
 def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:

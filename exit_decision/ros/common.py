@@ -23,9 +23,11 @@ from pathlib import Path
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rcl_interfaces.srv import SetParameters
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project
@@ -89,7 +91,6 @@ class Diagnostics:
         self.publisher.publish(message)
 
 
-
 class ProbeNode:
     """A node inside a non-ROS program (the launcher, a benchmark, a test) with its own
     context and executor, so it never touches the global rclpy context."""
@@ -108,6 +109,13 @@ class ProbeNode:
                 return True
             self.executor.spin_once(timeout_sec=0.05)
         return condition()
+
+    def set_parameter(self, client, name: str, value, timeout: float):
+        """Call a node's set_parameters service (what `ros2 param set` calls) through ``client``;
+        the SetParametersResult, or None when no answer came within ``timeout`` seconds."""
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        return future.result().results[0] if future.done() and future.result() else None
 
     def close(self) -> None:
         self.node.destroy_node()

@@ -19,10 +19,10 @@ from pathlib import Path
 
 from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
 
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
+
 
 def executable(name: str) -> list[str]:
     """The installed ament executable, or the module when running from a checkout only."""
@@ -141,10 +141,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 raise TimeoutError(f'the stack did not finish within {timeout} s')
             executor.spin_once(timeout_sec=0.05)
             if not switched and state['episode'] == 0 and state['step'] >= switch_at_step:
-                future = client.call_async(SetParameters.Request(
-                    parameters=[Parameter('mode', value=switch_to).to_parameter_msg()]))
-                executor.spin_until_future_complete(future, timeout_sec=10.0)
-                result = future.result().results[0] if future.result() else None
+                result = probe.set_parameter(client, 'mode', switch_to, timeout=10.0)
                 run.mode_switch = (f'mode {mode} -> {switch_to} at step {state["step"]}: '
                                    + ('accepted' if result and result.successful else
                                       f'refused ({result.reason if result else "no answer"})'))
