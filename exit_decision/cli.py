@@ -7,7 +7,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from exit_decision.config import ConfigError, load_project
+from exit_decision.config import ConfigError, default_config_dir, load_project
 from exit_decision.errors import PolicyError
 
 
@@ -67,10 +67,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Train one decision mode with GQN or MDGQN; writes policy.pt, logs and config."""
-    from exit_decision.learning.trainer import Trainer
+    from exit_decision.learning.trainer import CONDITIONED, Trainer
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
-    config.mode(args.mode)
+    if args.mode != CONDITIONED:
+        config.mode(args.mode)
     episodes = args.episodes or config.training.episodes
     out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
     if args.reward_variant:
@@ -87,7 +88,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.report import evaluate_runs
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
-    table = evaluate_runs(config, policies=args.policy, drivers=args.driver, episodes=args.episodes,
+    modes = args.mode or list(config.training.conditioning.validation_modes)
+    table = evaluate_runs(config, policies=args.policy, drivers=args.driver, modes=modes, episodes=args.episodes,
                           seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
     print(table)
     return 0
@@ -100,6 +102,27 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     table = run_ablation(args.out, args.algorithm, args.mode, args.episodes, args.test_episodes, args.seed,
                          args.test_seed, args.only, args.config_dir)
     print(markdown(table))
+    return 0
+
+
+def cmd_reward_sanity(args: argparse.Namespace) -> int:
+    """Score a sweep of rule-based drivers under every mode (before any training)."""
+    from exit_decision.experiments.reward_sanity import calibrate, load_sweep, write_sanity
+    from exit_decision.tables import read_rows
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    sweep = args.sweep or (args.config_dir or default_config_dir()) / 'reward_sanity.yaml'
+    variants = args.variant or [config.env.reward_variant]
+    if args.calibrate:
+        episodes = args.out / 'episodes.csv'
+        if not episodes.is_file():
+            raise ConfigError(f'{episodes}: no such file (run reward-sanity without --calibrate first)')
+        drivers, expect = load_sweep(sweep, config)
+        for variant in variants:
+            print(calibrate(read_rows(episodes), config, variant, next(iter(drivers)), expect))
+        return 0
+    print(write_sanity(config, sweep, list(range(args.seed, args.seed + args.episodes)), variants, args.jobs,
+                       args.out, 'exit-decision ' + ' '.join(sys.argv[1:])))
     return 0
 
 
@@ -174,14 +197,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def reference_driver(text: str) -> str:
-    """``sumo``, ``rule_based`` or ``rule_based:<MODE>`` (the mode is checked against the config later)."""
-    name, colon, mode = text.partition(':')
-    if name == 'sumo' and not colon or name == 'rule_based' and (not colon or mode):
-        return text
-    raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<MODE>')
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='exit-decision', description=__doc__)
     commands = parser.add_subparsers(dest='command', required=True)
@@ -203,7 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     train = commands.add_parser('train', help='train a decision mode with GQN or MDGQN')
     _common(train)
     train.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
-    train.add_argument('--mode', default='CONP', help='a mode of config/modes.yaml')
+    train.add_argument('--mode', default='conditioned',
+                       help='conditioned (one network for every mode, trained on all by relabelling) or a '
+                            'mode of config/modes.yaml (a per-mode network)')
     train.add_argument('--episodes', type=int, default=None, help='default: config/training.yaml')
     train.add_argument('--seed', type=int, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
@@ -214,9 +231,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
     _common(evaluate)
     evaluate.add_argument('--policy', type=Path, action='append', default=[], help='a policy.pt (repeatable)')
-    evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
-                          help='a reference driver (repeatable): sumo, rule_based (env.yaml\'s), or '
-                               'rule_based:<MODE> (the demonstrator of that mode)')
+    evaluate.add_argument('--driver', action='append', default=[], choices=['sumo', 'rule_based'],
+                          help='a reference driver (repeatable): sumo (SUMO\'s own drivers) or rule_based '
+                               '(the neutral teacher, env.yaml\'s rule_based)')
+    evaluate.add_argument('--mode', action='append', default=[],
+                          help='score (and run a conditioned policy) under this mode (repeatable; default: '
+                               'training.yaml conditioning.validation_modes); one CSV per run and mode')
     evaluate.add_argument('--episodes', type=int, default=50)
     evaluate.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
@@ -256,6 +276,19 @@ def build_parser() -> argparse.ArgumentParser:
     ablation.add_argument('--only', type=int, nargs='*', default=None, help='step indices to run')
     ablation.add_argument('--out', type=Path, default=Path('runs/ablation'))
     ablation.set_defaults(func=cmd_ablation)
+
+    sanity = commands.add_parser('reward-sanity', help='score a sweep of rule-based drivers under every mode')
+    _common(sanity)
+    sanity.add_argument('--sweep', type=Path, default=None, help='drivers (default: config/reward_sanity.yaml)')
+    sanity.add_argument('--variant', action='append', default=[],
+                        help='reward variant to score under (repeatable; default: env.yaml\'s)')
+    sanity.add_argument('--episodes', type=int, default=30, help='paired seeds per driver')
+    sanity.add_argument('--seed', type=int, default=20_000, help='first seed (not a test or training seed)')
+    sanity.add_argument('--jobs', type=int, default=2, help='worker processes (one simulation each)')
+    sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'))
+    sanity.add_argument('--calibrate', action='store_true',
+                        help='no simulation: search row-scale multipliers on --out\'s episodes.csv')
+    sanity.set_defaults(func=cmd_reward_sanity)
 
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
     plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')

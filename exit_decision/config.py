@@ -122,8 +122,6 @@ class ModeConfig(Strict):
     decision_weights: SubRewardValues
     incentive: Probability
     punishment: Probability
-    # keys of env.yaml's rule_based: the mode's demonstrator differs from the default driver
-    rule_based: dict[str, float] = Field(default_factory=dict)
 
 
 class ModesConfig(Strict):
@@ -141,6 +139,7 @@ class MatrixRewardConfig(Strict):
     lane_change_cap: PositiveInt | None
     dynamic_weights: bool
     comfort_vehicles: Literal['all', 'cav']
+    incentive_per: Literal['step', 'metre']
     v_min: SpeedBounds
     scales: SubRewardValues
 
@@ -254,7 +253,16 @@ class DemonstrationConfig(Strict):
 class ValidationConfig(Strict):
     every_episodes: PositiveInt
     episodes: PositiveInt
-    collision_weight: NonNegativeFloat
+    min_exit_rate: UnitInterval
+    max_cav_collision_rate: UnitInterval
+    parallel: bool
+
+
+class ConditioningConfig(Strict):
+    modes: list[str]
+    exact_share: Probability
+    concentration: PositiveFloat
+    validation_modes: list[str]
 
 
 class TrainingConfig(Strict):
@@ -269,6 +277,8 @@ class TrainingConfig(Strict):
     updates_per_decision: Count
     gradient_clip: PositiveFloat
     reward_scale: PositiveFloat
+    credit: Literal['own', 'global']
+    conditioning: ConditioningConfig
     network: NetworkConfig
     algorithms: dict[Literal['gqn', 'mdgqn'], AlgorithmConfig]
     exploration: ExplorationConfig
@@ -346,11 +356,6 @@ class ProjectConfig(BaseModel):
             raise ConfigError(f'unknown mode {name!r}; known modes: {", ".join(self.modes)}')
         return self.modes[name]
 
-    def rule_based(self, mode: str) -> RuleBasedConfig:
-        """The rule-based driver of a mode: env.yaml's, with the mode's own keys over it."""
-        return parse(RuleBasedConfig, {**self.env.rule_based.model_dump(), **self.mode(mode).rule_based},
-                     f'modes.yaml modes.{mode}.rule_based (over env.yaml rule_based)')
-
     def reward(self, name: str) -> MatrixRewardConfig | BaselineRewardConfig:
         if name not in self.rewards:
             raise ConfigError(f'unknown reward variant {name!r}; known: {", ".join(self.rewards)}')
@@ -395,6 +400,9 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
                            training=parsed['training'])
     config.mode(config.env.mode)
     config.reward(config.env.reward_variant)
-    for name in config.modes:
-        config.rule_based(name)
+    for key in ('modes', 'validation_modes'):
+        for name in getattr(config.training.conditioning, key):
+            if name not in config.modes:
+                raise ConfigError(f'{sources["training"]}: conditioning.{key}: unknown mode {name!r}; '
+                                  f'known modes: {", ".join(config.modes)}')
     return config

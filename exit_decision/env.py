@@ -2,9 +2,13 @@
 
 One ``step`` is one decision: every CAV row of the action vector gets its own action from
 the ``ActionGrid``, which is held for ``decision_interval`` simulation steps (a lane change
-is issued once). The reward is the shared scalar of the reward function matrix, summed over
-the interval. Observations are the graph of ``exit_decision.graph`` as a dict of arrays;
-``env.graph`` is the full ``TrafficGraph`` of the last observation (with vehicle ids).
+is issued once). The reward is the paper's global scalar of the reward function matrix under
+the env's mode, summed over the interval; ``info['reward_vector']`` holds what any mode's
+scalar is made of (``exit_decision.reward``), split by owner: (N, 4, 2) for the CAV rows
+that acted at this decision and (4, 2) shared (every other term, vehicles that did not act
+included), so the trainer can score it under other modes and credit each CAV its own part.
+Observations are the graph of ``exit_decision.graph`` as a dict of arrays; ``env.graph`` is
+the full ``TrafficGraph`` of the last observation (with vehicle ids).
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
 from exit_decision.evaluation.metrics import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
-from exit_decision.reward import StepRewardInputs, make_reward
+from exit_decision.reward import RewardVector, StepRewardInputs, make_reward, scalar
 from exit_decision.scenario.simulation import Backend, CavDriver, HighwaySimulation
 from exit_decision.traffic import StepResult
 
@@ -31,8 +35,10 @@ class ExitDecisionEnv(gym.Env):
     metadata = {'render_modes': []}
 
     def __init__(self, config: ProjectConfig, mode: str | None = None, reward_variant: str | None = None,
-                 cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo'):
+                 cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo', keep_step_inputs: bool = False):
         self.config = config
+        # the episode's reward inputs, kept to score it under other reward variants afterwards
+        self.step_inputs: list[StepRewardInputs] | None = [] if keep_step_inputs else None
         self.mode = mode or config.env.mode
         scenario = config.scenario
         self.sim = HighwaySimulation(scenario, cav_driver=cav_driver, backend=backend)
@@ -41,7 +47,8 @@ class ExitDecisionEnv(gym.Env):
         self.actions = ActionGrid(config.env.actions)
         self.shield = Shield.of(config, self.actions, self.sim.geometry)
         self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
-                                     config.mode(self.mode), scenario.emergency_braking_threshold)
+                                     scenario.step_length, scenario.emergency_braking_threshold)
+        self.set_mode(self.mode)
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
         self.observation_space = spaces.Dict({
             'features': spaces.Box(-1.0, np.inf, (n, f), np.float32),
@@ -51,6 +58,11 @@ class ExitDecisionEnv(gym.Env):
         self.action_space = spaces.MultiDiscrete(np.full(n, self.actions.size))
         self._window = max(1, round(LANE_CHANGE_WINDOW / scenario.step_length))
         self.graph: TrafficGraph | None = None
+
+    def set_mode(self, mode: str) -> None:
+        """Score the scalar reward (and the episode log's return) under another mode."""
+        self.mode_weights = self.reward_fn.weights(self.config.mode(mode))
+        self.mode = mode
 
     def _observation(self) -> dict[str, np.ndarray]:
         g = self.graph
@@ -64,6 +76,8 @@ class ExitDecisionEnv(gym.Env):
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
         self.episode_log = EpisodeLog(self.config.scenario.emergency_braking_threshold)
         self._lane_changes = deque(maxlen=self._window)
+        if self.step_inputs is not None:
+            self.step_inputs.clear()
         return self._observation(), {'seed': episode_seed}
 
     def cav_ids(self) -> list[str]:
@@ -80,28 +94,42 @@ class ExitDecisionEnv(gym.Env):
         return {self.graph.vehicle_ids[row]: self.actions.command(int(action[row]))
                 for row in self.graph.cav_rows()}
 
-    def simulate_step(self, commands: dict | None = None) -> tuple[StepResult, float]:
-        """One simulation step (new commands, or None to hold), its reward, logged in the
-        episode log. ``step`` is made of these; the ROS bridge calls it directly."""
+    def simulate_step(self, commands: dict | None = None) -> tuple[StepResult, RewardVector]:
+        """One simulation step (new commands, or None to hold) and its reward vector, logged
+        in the episode log. ``step`` is made of these; the ROS bridge calls it directly."""
         result = self.sim.step(commands)
         self._lane_changes.append(len(result.lane_changers))
-        reward = self.reward_fn(StepRewardInputs(result, self.sim.snapshot, sum(self._lane_changes))).total
-        self.episode_log.record(result, reward)
-        return result, reward
+        inputs = StepRewardInputs(result, self.sim.snapshot, sum(self._lane_changes))
+        if self.step_inputs is not None:
+            self.step_inputs.append(inputs)
+        vector = self.reward_fn.vector(inputs)
+        total = vector.total()
+        self.episode_log.record(result, float(scalar(total, self.mode_weights)), total)
+        return result, vector
 
     def step(self, action):
         commands = self.commands(action)
-        total = 0.0
+        graph = self.graph
+        acting = {graph.vehicle_ids[row]: row for row in graph.cav_rows()}
+        per_row = np.zeros((graph.num_nodes, 4, 2))
+        shared = np.zeros((4, 2))
         results = []
         for k in range(self.config.env.decision_interval):
-            result, reward = self.simulate_step(commands if k == 0 else None)
-            total += reward
+            result, vector = self.simulate_step(commands if k == 0 else None)
+            shared += vector.shared
+            for vehicle_id, part in vector.per_vehicle.items():
+                row = acting.get(vehicle_id)
+                if row is None:
+                    shared += part
+                else:
+                    per_row[row] += part
             results.append(result)
             if result.terminated or result.truncated:
                 break
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
-        info = {'step_results': results}
-        return self._observation(), total, result.terminated, result.truncated and not result.terminated, info
+        reward = float(scalar(per_row.sum(0) + shared, self.mode_weights))
+        info = {'step_results': results, 'reward_vector': (per_row, shared)}
+        return self._observation(), reward, result.terminated, result.truncated and not result.terminated, info
 
     def close(self) -> None:
         self.sim.close()

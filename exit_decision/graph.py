@@ -9,7 +9,9 @@ policy sees in ROS exactly what it saw in training.
   intention one-hot (change left, change right, keep).
 - Adjacency (0/1, symmetric): each vehicle with itself; every CAV with every CAV; a CAV
   with an HV within the sensing range (longitudinal, any lane); never HV with HV.
-- CAV mask: 1 on CAV rows.
+- CAV mask: 1 on CAV rows. "CAV" here means a vehicle the policy controls
+  (``VehicleState.controlled``): a CAV released to SUMO's driver after a missed exit is a
+  human-driven vehicle from then on.
 
 The ``relative`` feature set (ours, SPEC section 4) adds, for the lane to the right, the own
 lane and the lane to the left: the bumper gap to the leader and to the follower (/ 50 m,
@@ -111,7 +113,7 @@ class GraphBuilder:
             position = np.array([v.position for v in vehicles])
             lane = np.array([v.lane_index for v in vehicles])
             intention = np.array([v.intention for v in vehicles])
-            is_cav = np.array([v.is_cav for v in vehicles])
+            is_cav = np.array([v.controlled for v in vehicles])
             features[rows, 0] = speed / self.speed_scale
             features[rows, 1] = position / self.road_length
             features[rows, 2 + lane] = 1.0

@@ -9,7 +9,7 @@ network. ``GraphPolicy.q_values`` runs all rows of a graph in one forward pass;
 from __future__ import annotations
 
 import subprocess
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,8 @@ from exit_decision.learning.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
+#: run names of mode-conditioned policies end so: policies/mdgqn_conditioned/policy.pt
+CONDITIONED_SUFFIX = '_conditioned'
 
 
 def git_revision() -> str:
@@ -47,12 +49,14 @@ def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) ->
 
 
 @torch.no_grad()
-def q_values(network: GraphQNetwork, graph: TrafficGraph) -> np.ndarray:
+def q_values(network: GraphQNetwork, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
     """(N, A) Q values of every row of one graph in one forward pass (rows that are not
-    CAVs are computed but meaningless)."""
+    CAVs are computed but meaningless); ``weights``: the mode's six weights, for a
+    mode-conditioned network."""
     features = torch.from_numpy(np.ascontiguousarray(graph.features)).unsqueeze(0)
     adjacency = torch.from_numpy(np.ascontiguousarray(graph.adjacency)).unsqueeze(0)
-    return network(features, adjacency)[0].numpy()
+    w = None if weights is None else torch.as_tensor(weights, dtype=torch.float32).unsqueeze(0)
+    return network(features, adjacency, w)[0].numpy()
 
 
 class GraphPolicy:
@@ -77,8 +81,13 @@ class GraphPolicy:
         if grid.size != self.grid.size or not np.allclose(grid.accelerations, self.grid.accelerations):
             raise PolicyError(f'{self.path}: its action grid differs from the configured one')
 
-    def q_values(self, graph: TrafficGraph) -> np.ndarray:
-        return q_values(self.network, graph)
+    @property
+    def conditioned(self) -> bool:
+        """One network for every mode: Q(s, a, w) takes the mode's weights."""
+        return self.network.conditioned
+
+    def q_values(self, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
+        return q_values(self.network, graph, weights if self.conditioned else None)
 
 
 def load_policy(path: Path | str) -> GraphPolicy:
@@ -99,20 +108,34 @@ def load_policy(path: Path | str) -> GraphPolicy:
         raise PolicyError(f'{path}: checkpoint content does not fit ({error})') from None
 
 
-class PolicyController:
-    """Greedy decisions of a policy under the shield (what evaluation and the node run)."""
+def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapshot, q: np.ndarray,
+                    explore: Callable[[np.ndarray], int] | None = None) -> Decision:
+    """Each CAV row's best allowed action by its Q values, under the shield (front to back);
+    ``explore``: called with the mask for a CAV that explores instead (returns an action or
+    None to stay greedy)."""
+    row_of = {vehicle_id: row for row, vehicle_id in enumerate(graph.vehicle_ids) if vehicle_id}
 
-    def __init__(self, policy: GraphPolicy, shield: Shield):
+    def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
+        chosen = explore(mask) if explore is not None else None
+        if chosen is not None:
+            return chosen
+        return int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
+    return shield.decide(snapshot, [graph.vehicle_ids[row] for row in graph.cav_rows()], choose,
+                         preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))
+
+
+class PolicyController:
+    """Greedy decisions of a policy under the shield (what evaluation and the node run);
+    ``weights``: the mode a conditioned policy decides for (changeable between decisions)."""
+
+    def __init__(self, policy: GraphPolicy, shield: Shield, weights: np.ndarray | None = None):
         torch.set_num_threads(1)   # one small forward per decision: threads only add contention
         self.policy = policy
         self.shield = shield
         self.name = policy.label
+        if policy.conditioned and weights is None:
+            raise PolicyError(f'{policy.path}: a mode-conditioned policy needs the mode weights to decide')
+        self.weights = weights
 
     def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
-        q = self.policy.q_values(graph)
-        row_of = {vehicle_id: row for row, vehicle_id in enumerate(graph.vehicle_ids) if vehicle_id}
-        cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
-        return self.shield.decide(
-            TrafficSnapshot(vehicles), cav_ids,
-            choose=lambda vehicle, mask: int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax()),
-            preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))
+        return greedy_decision(self.shield, graph, TrafficSnapshot(vehicles), self.policy.q_values(graph, self.weights))

@@ -1,27 +1,49 @@
 """The reward function matrix of paper 000 (Section 4; SPEC section 5) and the baseline reward.
 
 r = tr(A_k1 A_k2 A_r^T): A_k1 = diag(k_result, k_efficiency, k_comfort, k_safety) (the mode's
-decision weights), A_k2 = [[k_iI, k_iP]] (incentive / punishment weights, the incentive
-ones dynamic, eq. 20), A_r = [[r_iI, r_iP]] (the sub-rewards of the step, each divided by
-the variant's scale). The ``literal`` variant is the paper as written; ``bounded`` caps
-every exponent and the lane-change count (ours: the literal terms reach 1e10).
+decision weights), A_k2 = [[k_iI, k_iP]] (incentive / punishment weights, the incentive ones
+dynamic, eq. 20), A_r = [[r_iI, r_iP]] (the sub-rewards of the step, each divided by the
+variant's scale).
+
+The reward is computed in two parts so that one experience can be scored under any mode:
+- ``MatrixReward.vector`` gives the step's *reward vector*: the (4 rows x [incentive,
+  punishment]) sub-rewards, divided by the scales, with the dynamic factors of eq. 20
+  (exp(s / c_row), s = r_result_P + r_comfort_P: they do not depend on the mode) already
+  multiplied into the incentive column. It is split by owner: each CAV's own terms (its
+  exit, speed, comfort, gaps) and the terms no single CAV owns (HV2 exits, a collision with
+  no CAV in it, the lane-change count m, humans' comfort when counted).
+- ``scalar(vector, mode_weights(mode))`` is then the paper's tr(A_k1 A_k2 A_r^T) exactly:
+  linear in the vector, so sums over steps, m-step returns and per-CAV shares are scored the
+  same way. Nothing else computes a mode's scalar.
+
+Variants: ``literal`` is the paper as written; ``bounded`` caps every exponent and the
+lane-change count (ours: the literal terms reach 1e10) and counts per-step incentives per
+step (the calibration of earlier releases, kept for the ablation); ``calibrated`` (ours, the
+default) counts the per-step incentives per metre driven, so a CAV earns them for the road it
+covers, not for the time it stays (per step, faster safe driving never paid: docs/design.md).
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from exit_decision.config import BaselineRewardConfig, MatrixRewardConfig, ModeConfig
+from exit_decision.scenario.sumo_inputs import TASK_EXIT
 from exit_decision.traffic import StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
-EXIT_TASK = 'Exit_1'
+RESULT, EFFICIENCY, COMFORT, SAFETY = range(4)
+INCENTIVE, PUNISHMENT = 0, 1
 SAFETY_TIME_CAP = 10.0      # [s] time gaps longer than this count as 10 s
 SAFETY_THRESHOLD = 4.0      # [s] below: the hazard regions of the driving hazard diagram
 E2 = math.exp(2.0)
+#: Denominators c_row of the dynamic incentive weights (eq. 20); None: static (comfort)
+DYNAMIC_DENOMINATORS = (100000.0, 80000.0, None, 150000.0)
+#: Length of the network input describing a mode: A_k1's diagonal, then k_I0 and k_P0
+WEIGHT_INPUT_SIZE = 6
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,64 +54,102 @@ class StepRewardInputs:
     recent_lane_changes: int    # m: lane changes of all vehicles in the last 0.5 s
 
 
-@dataclass(frozen=True, slots=True)
-class RewardBreakdown:
-    total: float
-    sub_rewards: np.ndarray     # (4, 2) raw (unscaled) [incentive, punishment] per row
-    weights: np.ndarray         # (4, 2) A_k2 as used (after the dynamic weights)
+@dataclass
+class RewardVector:
+    """Mode-independent reward of a step or a sum of steps, split by owner (module docstring)."""
+    per_vehicle: dict[str, np.ndarray] = field(default_factory=dict)   # CAV id -> (4, 2)
+    shared: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))
 
+    def total(self) -> np.ndarray:
+        """(4, 2): the whole step's vector (what the paper's global reward is made of)."""
+        return self.shared + sum(self.per_vehicle.values(), np.zeros((4, 2)))
+
+
+# --- modes as weights -----------------------------------------------------------------------
+
+def weight_input(mode: ModeConfig) -> np.ndarray:
+    """The six numbers that describe a mode: A_k1's diagonal (in ROWS order), k_I0, k_P0."""
+    d = mode.decision_weights
+    return np.array([*(getattr(d, row) for row in ROWS), mode.incentive, mode.punishment])
+
+
+def weights_of_input(weights: np.ndarray) -> np.ndarray:
+    """(..., 6) weight inputs -> (..., 4, 2) multipliers of the reward vector."""
+    weights = np.asarray(weights, dtype=float)
+    return weights[..., :4, None] * weights[..., None, 4:6]
+
+
+def mode_weights(mode: ModeConfig) -> np.ndarray:
+    """(4, 2) multipliers of the reward vector for a mode: A_k1[row] * [k_I0, k_P0]."""
+    return weights_of_input(weight_input(mode))
+
+
+def scalar(vector: np.ndarray, weights: np.ndarray) -> np.ndarray | float:
+    """tr(A_k1 A_k2 A_r^T) of reward vectors (..., 4, 2) under weights (..., 4, 2)."""
+    return (np.asarray(vector) * weights).sum(axis=(-2, -1))
+
+
+def check_weight_input(weights: Sequence[float]) -> str | None:
+    """Why six numbers are not a valid mode (None if they are): four non-negative decision
+    weights summing to 1, then non-negative incentive and punishment weights summing to 1."""
+    values = np.asarray(weights, dtype=float)
+    if values.shape != (WEIGHT_INPUT_SIZE,):
+        return f'expected {WEIGHT_INPUT_SIZE} numbers (result, efficiency, comfort, safety, incentive, ' \
+               f'punishment), got {values.size}'
+    if not np.isfinite(values).all() or (values < 0).any():
+        return 'every weight must be a finite number >= 0'
+    if abs(values[:4].sum() - 1.0) > 1e-6:
+        return f'the four decision weights must sum to 1, they sum to {values[:4].sum():.6g}'
+    if abs(values[4:].sum() - 1.0) > 1e-6:
+        return f'incentive + punishment must be 1, they sum to {values[4:].sum():.6g}'
+    return None
+
+
+# --- the matrix -----------------------------------------------------------------------------
 
 class MatrixReward:
-    """Reward function matrix for one decision mode."""
+    """Reward vectors of the reward function matrix for one variant (any mode scores them)."""
 
-    def __init__(self, config: MatrixRewardConfig, mode: ModeConfig, braking_threshold: float = -4.5):
+    def __init__(self, config: MatrixRewardConfig, step_length: float, braking_threshold: float = -4.5):
         self.config = config
-        self.mode = mode
+        self.step_length = step_length
         self.braking_threshold = braking_threshold
-        weights = mode.decision_weights
-        self.decision_matrix = np.diag([getattr(weights, row) for row in ROWS])   # A_k1
         self.scales = np.array([getattr(config.scales, row) for row in ROWS])[:, None]
 
-    # --- capped exponentials ---------------------------------------------------------------
+    def weights(self, mode: ModeConfig) -> np.ndarray:
+        return mode_weights(mode)
 
     def _exp(self, x: float) -> float:
         cap = self.config.exponent_cap
         return math.exp(x if cap is None else min(x, cap))
 
-    # --- sub-rewards (raw, per step) --------------------------------------------------------
+    def _per(self, vehicle: VehicleState) -> float:
+        """What one step of a per-step incentive counts for: 1, or the metres driven in it."""
+        return vehicle.speed * self.step_length if self.config.incentive_per == 'metre' else 1.0
 
-    @staticmethod
-    def result(step: StepResult) -> tuple[float, float]:
-        """300 per CAV or HV2 leaving by Exit_1 (eq. 21); -60000 if any collision (eq. 22)."""
-        exits = sum(1 for a in step.arrivals
-                    if a.exit_edge == EXIT_TASK and a.vehicle_class in ('CAV', 'HV2'))
-        return 300.0 * exits, -60000.0 if step.collisions else 0.0
+    # --- sub-rewards (raw) --------------------------------------------------------------------
 
     def v_min(self, vehicle: VehicleState) -> float:
         return self.config.v_min.highway if vehicle.on_highway else self.config.v_min.ramp
 
-    def efficiency(self, cavs: Sequence[VehicleState]) -> tuple[float, float]:
-        """Summed over CAVs: exp(6 (v - v_min) / v_max) in the band, penalties outside (eq. 23-24)."""
-        incentive = punishment = 0.0
-        for vehicle in cavs:
-            v, v_max, v_min = vehicle.speed, vehicle.lane_speed_limit, self.v_min(vehicle)
-            if v > v_max:
-                punishment -= self._exp(v - v_max)
-            elif v < v_min:
-                punishment -= self._exp(1.0 + (v_min - v) / 3.0)
-            else:
-                incentive += self._exp(6.0 * (v - v_min) / v_max)
-        return incentive, punishment
+    def efficiency_one(self, vehicle: VehicleState) -> tuple[float, float]:
+        """exp(6 (v - v_min) / v_max) in the band, penalties outside (eq. 23-24)."""
+        v, v_max, v_min = vehicle.speed, vehicle.lane_speed_limit, self.v_min(vehicle)
+        if v > v_max:
+            return 0.0, -self._exp(v - v_max)
+        if v < v_min:
+            return 0.0, -self._exp(1.0 + (v_min - v) / 3.0)
+        return self._exp(6.0 * (v - v_min) / v_max) * self._per(vehicle), 0.0
 
-    def comfort(self, vehicles: Sequence[VehicleState], lane_changes: int) -> tuple[float, float]:
-        """e^3 per vehicle with |a| <= 2; -2000 per emergency braking - exp(m / 2) (eq. 25-26)."""
-        if self.config.comfort_vehicles == 'cav':
-            vehicles = [v for v in vehicles if v.is_cav]
-        smooth = sum(1 for v in vehicles if -2.0 <= v.acceleration <= 2.0)
-        braking = sum(1 for v in vehicles if v.acceleration <= self.braking_threshold)
+    def comfort_one(self, vehicle: VehicleState) -> tuple[float, float]:
+        """e^3 with |a| <= 2; -2000 for an emergency braking (eq. 25-26, per vehicle)."""
+        smooth = math.exp(3.0) * self._per(vehicle) if -2.0 <= vehicle.acceleration <= 2.0 else 0.0
+        return smooth, -2000.0 if vehicle.acceleration <= self.braking_threshold else 0.0
+
+    def lane_change_punishment(self, lane_changes: int) -> float:
+        """-exp(m / 2) for the lane changes of the last 0.5 s (eq. 26)."""
         cap = self.config.lane_change_cap
-        m = lane_changes if cap is None else min(lane_changes, cap)
-        return math.exp(3.0) * smooth, -2000.0 * braking - self._exp(m / 2.0)
+        return -self._exp((lane_changes if cap is None else min(lane_changes, cap)) / 2.0)
 
     def safety_one(self, t_follower: float, t_leader: float) -> tuple[float, float]:
         """The driving hazard diagram (Table 4) on the two time gaps [s] (inf = not closing)."""
@@ -113,68 +173,96 @@ class MatrixReward:
             t2 = (around.leader.position - vehicle.position) / (vehicle.speed - around.leader.speed)
         return t1, t2
 
-    def safety(self, cavs: Sequence[VehicleState], snapshot: TrafficSnapshot) -> tuple[float, float]:
-        incentive = punishment = 0.0
-        for vehicle in cavs:
-            i, p = self.safety_one(*self.time_gaps(vehicle, snapshot))
-            incentive += i
-            punishment += p
-        return incentive, punishment
+    # --- the step's vector --------------------------------------------------------------------
 
-    # --- the matrix --------------------------------------------------------------------------
+    def raw(self, inputs: StepRewardInputs) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Unscaled sub-rewards (4, 2) per CAV and shared, before the dynamic factors: 300 per
+        CAV or HV2 leaving by the task exit, -60000 once if any collision (eq. 21-22; owned by
+        the CAVs in it, shared if none), then eq. 23-28 per vehicle. A CAV released after a
+        missed exit earns and loses nothing more but its collisions."""
+        step, snapshot = inputs.step, inputs.snapshot
+        shared = np.zeros((4, 2))
+        own: dict[str, np.ndarray] = {}
 
-    def incentive_weights(self, result_p: float, comfort_p: float) -> np.ndarray:
-        """A_k2 with the dynamic incentive weights of eq. 20 (s = r_result_P + r_comfort_P)."""
-        k_i, k_p = self.mode.incentive, self.mode.punishment
-        if self.config.dynamic_weights:
-            s = result_p + comfort_p
-            incentive = [k_i * math.exp(s / 100000.0), k_i * math.exp(s / 80000.0), k_i,
-                         k_i * math.exp(s / 150000.0)]
-        else:
-            incentive = [k_i] * 4
-        return np.column_stack([incentive, [k_p] * 4])
+        def of(vehicle_id: str) -> np.ndarray:
+            return own.setdefault(vehicle_id, np.zeros((4, 2)))
 
-    def combine(self, sub_rewards: np.ndarray) -> RewardBreakdown:
-        """tr(A_k1 A_k2 A_r^T) for raw sub-rewards (4 x 2, rows in ROWS order)."""
-        weights = self.incentive_weights(sub_rewards[0, 1], sub_rewards[2, 1])
-        total = float(np.trace(self.decision_matrix @ weights @ (sub_rewards / self.scales).T))
-        return RewardBreakdown(total, sub_rewards, weights)
+        for arrival in step.arrivals:
+            if arrival.exit_edge == TASK_EXIT and arrival.vehicle_class == 'CAV':
+                of(arrival.vehicle_id)[RESULT, INCENTIVE] += 300.0
+            elif arrival.exit_edge == TASK_EXIT and arrival.vehicle_class == 'HV2':
+                shared[RESULT, INCENTIVE] += 300.0
+        if step.collisions:
+            colliders = sorted({vid for c in step.collisions for vid, cls in
+                                ((c.collider, c.collider_class), (c.victim, c.victim_class)) if cls == 'CAV'})
+            for vehicle_id in colliders:
+                of(vehicle_id)[RESULT, PUNISHMENT] -= 60000.0 / len(colliders)
+            if not colliders:
+                shared[RESULT, PUNISHMENT] -= 60000.0
+        for vehicle in step.vehicles:
+            if vehicle.vehicle_id in step.released:
+                continue   # out of the task: its metres after a missed exit earn nothing
+            if vehicle.is_cav:
+                cell = of(vehicle.vehicle_id)
+                cell[EFFICIENCY] += self.efficiency_one(vehicle)
+                cell[COMFORT] += self.comfort_one(vehicle)
+                cell[SAFETY] += self.safety_one(*self.time_gaps(vehicle, snapshot))
+            elif self.config.comfort_vehicles == 'all':
+                shared[COMFORT] += self.comfort_one(vehicle)
+        shared[COMFORT, PUNISHMENT] += self.lane_change_punishment(inputs.recent_lane_changes)
+        return own, shared
 
-    def __call__(self, inputs: StepRewardInputs) -> RewardBreakdown:
-        vehicles = inputs.step.vehicles
-        cavs = [v for v in vehicles if v.is_cav]
-        sub_rewards = np.array([
-            self.result(inputs.step),
-            self.efficiency(cavs),
-            self.comfort(vehicles, inputs.recent_lane_changes),
-            self.safety(cavs, inputs.snapshot),
-        ], dtype=float)
-        return self.combine(sub_rewards)
+    def dynamic_factors(self, result_p: float, comfort_p: float) -> np.ndarray:
+        """(4,) the factors of eq. 20 on the incentive weights, s = r_result_P + r_comfort_P."""
+        if not self.config.dynamic_weights:
+            return np.ones(4)
+        s = result_p + comfort_p
+        return np.array([1.0 if c is None else math.exp(s / c) for c in DYNAMIC_DENOMINATORS])
+
+    def vector(self, inputs: StepRewardInputs) -> RewardVector:
+        own, shared = self.raw(inputs)
+        punishments = shared[:, PUNISHMENT] + sum((v[:, PUNISHMENT] for v in own.values()), np.zeros(4))
+        factor = np.ones((4, 2))
+        factor[:, INCENTIVE] = self.dynamic_factors(punishments[RESULT], punishments[COMFORT])
+        factor /= self.scales
+        return RewardVector({vid: v * factor for vid, v in own.items()}, shared * factor)
 
 
 class BaselineReward:
-    """Dong et al.'s reward (paper 000's baseline): intention + speed - lane change - collision."""
+    """Dong et al.'s reward (paper 000's baseline): intention + speed - lane change - collision.
 
-    def __init__(self, config: BaselineRewardConfig):
+    Its vector holds the four terms already weighted (one entry each), so every mode scores
+    it the same: the baseline has no modes."""
+
+    def __init__(self, config: BaselineRewardConfig, step_length: float = 0.1, braking_threshold: float = -4.5):
         self.config = config
 
-    def __call__(self, inputs: StepRewardInputs) -> RewardBreakdown:
-        step = inputs.step
-        cavs = [v for v in step.vehicles if v.is_cav]
-        exits = sum(1 for a in step.arrivals if a.vehicle_class == 'CAV' and a.exit_edge == EXIT_TASK)
-        speed = sum(v.speed / v.lane_speed_limit for v in cavs)
-        cav_ids = {v.vehicle_id for v in cavs}
-        lane_changes = sum(1 for vehicle_id in step.lane_changers if vehicle_id in cav_ids)
-        c = self.config
-        total = (c.intention * exits + c.speed * speed - c.lane_change * lane_changes
-                 - c.collision * len(step.collisions))
-        sub_rewards = np.array([[exits, -len(step.collisions)], [speed, 0.0],
-                                [0.0, -lane_changes], [0.0, 0.0]], dtype=float)
-        return RewardBreakdown(total, sub_rewards, np.ones((4, 2)))
+    def weights(self, mode: ModeConfig) -> np.ndarray:
+        return np.ones((4, 2))
+
+    def vector(self, inputs: StepRewardInputs) -> RewardVector:
+        step, c = inputs.step, self.config
+        result = RewardVector()
+        for vehicle in step.vehicles:
+            if vehicle.is_cav:
+                result.per_vehicle[vehicle.vehicle_id] = np.zeros((4, 2))
+                result.per_vehicle[vehicle.vehicle_id][EFFICIENCY, INCENTIVE] = \
+                    c.speed * vehicle.speed / vehicle.lane_speed_limit
+        for arrival in step.arrivals:
+            if arrival.vehicle_class == 'CAV' and arrival.exit_edge == TASK_EXIT:
+                result.per_vehicle.setdefault(arrival.vehicle_id, np.zeros((4, 2)))[RESULT, INCENTIVE] += c.intention
+        for vehicle_id in step.lane_changers:
+            if vehicle_id in result.per_vehicle:
+                result.per_vehicle[vehicle_id][COMFORT, PUNISHMENT] -= c.lane_change
+        result.shared[RESULT, PUNISHMENT] = -c.collision * len(step.collisions)
+        return result
 
 
-def make_reward(config: MatrixRewardConfig | BaselineRewardConfig, mode: ModeConfig,
-                braking_threshold: float = -4.5) -> MatrixReward | BaselineReward:
+RewardFunction = MatrixReward | BaselineReward
+
+
+def make_reward(config: MatrixRewardConfig | BaselineRewardConfig, step_length: float,
+                braking_threshold: float = -4.5) -> RewardFunction:
     if isinstance(config, BaselineRewardConfig):
         return BaselineReward(config)
-    return MatrixReward(config, mode, braking_threshold)
+    return MatrixReward(config, step_length, braking_threshold)

@@ -140,6 +140,7 @@ class StepResult:
     lane_changers: list[str] = field(default_factory=list)    # vehicles that changed lane this step
     inserted: int = 0                                         # vehicles that entered so far
     waiting: int = 0                                          # drawn but not yet able to enter
+    released: frozenset[str] = frozenset()                    # CAVs handed to SUMO after a missed exit
     terminated: bool = False                                  # every vehicle entered and left
     truncated: bool = False                                   # step cap reached
 

@@ -69,17 +69,16 @@ def test_a_new_mode_needs_only_yaml(config_copy):
     assert load_project(config_copy).mode('MINE').incentive == 0.5
 
 
-def test_a_mode_can_have_its_own_demonstrator(config_copy):
+def test_a_mode_cannot_bring_its_own_demonstrator(config_copy):
+    """One neutral teacher for every mode: what separates the modes is the reward alone."""
     edit(config_copy / 'modes.yaml', lambda d: d['modes']['AGGI'].__setitem__('rule_based', {'time_headway': 0.9}))
-    config = load_project(config_copy)
-    assert config.rule_based('AGGI').time_headway == 0.9
-    assert config.rule_based('AGGI').gap_search_speed == config.env.rule_based.gap_search_speed
-    assert config.rule_based('CONI') == config.env.rule_based
+    with pytest.raises(ConfigError, match=r'modes\.AGGI\.rule_based(.|\n)*Extra inputs'):
+        load_project(config_copy)
 
 
-def test_a_misspelt_demonstrator_key_of_a_mode_fails_at_load(config_copy):
-    edit(config_copy / 'modes.yaml', lambda d: d['modes']['CONI'].__setitem__('rule_based', {'time_headwy': 0.9}))
-    with pytest.raises(ConfigError, match=r'modes\.CONI\.rule_based(.|\n)*time_headwy'):
+def test_conditioning_on_an_unknown_mode_is_named(config_copy):
+    edit(config_copy / 'training.yaml', lambda d: d['conditioning'].__setitem__('modes', ['AGGI', 'FAST']))
+    with pytest.raises(ConfigError, match="conditioning.modes: unknown mode 'FAST'"):
         load_project(config_copy)
 
 

@@ -6,7 +6,7 @@ import torch
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape, normalize_adjacency
-from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer
+from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.policy import PolicyError, load_policy, save_policy
 
 A = 4
@@ -46,8 +46,21 @@ def graph(ids, n=3, f=2, cavs=None):
     return TrafficGraph(np.full((n, f), len(ids[0]), np.float32), np.eye(n, dtype=np.uint8), cav_mask, tuple(ids))
 
 
-def record(ids, reward, actions=(0, NO_ACTION, NO_ACTION)):
-    return DecisionRecord(graph(ids), np.array(actions), np.ones((3, A), bool), reward)
+def vector(value):
+    """A reward vector that any mode with k_result * k_I = 1 scores as ``value``."""
+    v = np.zeros((4, 2))
+    v[0, 0] = value
+    return v
+
+
+def record(ids, reward, actions=(0, NO_ACTION, NO_ACTION), shared=0.0):
+    own = np.zeros((3, 4, 2))
+    own[0] = vector(reward)
+    return DecisionRecord(graph(ids), np.array(actions), np.ones((3, A), bool), own, vector(shared))
+
+
+def scored(transition, row=0):
+    return transition.returns[row, 0, 0]
 
 
 def test_m_step_target_with_an_episode_end_inside_the_window():
@@ -59,14 +72,26 @@ def test_m_step_target_with_an_episode_end_inside_the_window():
     assert acc.add(record(ids, 4.0)) == []
     first = acc.add(record(('b', '', ''), 8.0))         # t=0 -> t=3 complete
     assert len(first) == 1
-    assert first[0].ret == pytest.approx(1 + 0.5 * 2 + 0.25 * 4)
+    assert scored(first[0]) == pytest.approx(1 + 0.5 * 2 + 0.25 * 4)
     assert first[0].discount == pytest.approx(0.125)
     assert not first[0].alive[0], 'row 0 holds another vehicle at t+3: terminal for a'
     rest = acc.finish(DecisionRecord(graph(('b', '', '')), np.full(3, NO_ACTION), np.ones((3, A), bool)),
                       terminated=True)
-    assert [round(t.ret, 6) for t in rest] == [2 + 0.5 * 4 + 0.25 * 8, 4 + 0.5 * 8, 8.0]
+    assert [round(scored(t), 6) for t in rest] == [2 + 0.5 * 4, 4, 8.0], 'a is not credited b\'s reward (row 0 from t=3)'
+    assert [round(t.global_return[0, 0], 6) for t in rest] == [2 + 0.5 * 4 + 0.25 * 8, 4 + 0.5 * 8, 8.0]
     assert all(t.discount == 0.0 for t in rest), 'no bootstrap past the episode end'
     assert rest[2].alive[0], 'b is still there: only the episode end stops the bootstrap'
+
+
+def test_each_acting_row_gets_its_own_terms_and_an_equal_share_of_the_rest():
+    own = np.zeros((3, 4, 2))
+    own[0], own[1], own[2] = vector(1.0), vector(3.0), vector(100.0)   # row 2 did not act
+    rec = DecisionRecord(graph(('a', 'b', 'h')), np.array([0, 2, NO_ACTION]), np.ones((3, A), bool), own, vector(4.0))
+    accumulator = EpisodeAccumulator(steps=1, gamma=0.9)
+    assert accumulator.add(rec) == []
+    (transition,) = accumulator.finish(record(('a', 'b', 'h'), 0.0), terminated=True)
+    assert [scored(transition, row) for row in range(3)] == [1.0 + 2.0, 3.0 + 2.0, 0.0]
+    assert transition.global_return[0, 0] == pytest.approx(1 + 3 + 100 + 4), 'the global return keeps every term'
 
 
 def test_truncated_episode_still_bootstraps():
@@ -85,7 +110,9 @@ def make_batch(next_q_rows_alive=True):
     final = DecisionRecord(graph(('a' if next_q_rows_alive else 'z', '', '')), np.full(3, NO_ACTION), mask)
     (transition,) = acc.finish(final, terminated=False)
     buffer.add(transition)
-    return buffer.sample(np.array([0]))
+    batch = buffer.sample(np.array([0]))
+    batch['rewards'] = scored_rewards(batch, np.array([[1.0, 0, 0, 0, 1.0, 0]]), 'own')
+    return batch
 
 
 class FixedNet(torch.nn.Module):
@@ -95,7 +122,7 @@ class FixedNet(torch.nn.Module):
         super().__init__()
         self.values = torch.tensor(values, dtype=torch.float32)
 
-    def cav_q_values(self, features, adjacency, rows):
+    def cav_q_values(self, features, adjacency, rows, weights=None):
         return self.values.expand(len(rows), A)
 
 
@@ -163,3 +190,41 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
         load_policy(tmp_path / 'bad.pt')
     with pytest.raises(PolicyError, match='trained with num_nodes=3'):
         policy.check_compatible(60, 'paper', 5, policy.grid)
+
+
+def test_a_conditioned_network_answers_per_weight_vector():
+    net = GraphQNetwork(NetworkShape(num_features=2, num_actions=A, num_weights=6))
+    features, adjacency = torch.rand(2, 3, 2), torch.eye(3).expand(2, 3, 3)
+    aggressive = torch.tensor([[0.25, 0.35, 0.15, 0.25, 0.6, 0.4]] * 2)
+    conservative = torch.tensor([[0.2, 0.2, 0.25, 0.35, 0.4, 0.6]] * 2)
+    assert not torch.allclose(net(features, adjacency, aggressive), net(features, adjacency, conservative))
+    rows = torch.tensor([[0, 1], [1, 2]])
+    torch.testing.assert_close(net.cav_q_values(features, adjacency, rows, aggressive),
+                               net(features, adjacency, aggressive)[rows[:, 0], rows[:, 1]])
+    with pytest.raises(ValueError, match='needs the mode weights'):
+        net(features, adjacency)
+
+
+def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
+    from exit_decision.policy import PolicyController
+    net = GraphQNetwork(NetworkShape(num_features=2, num_actions=A, num_weights=6))
+    save_policy(tmp_path / 'c.pt', net, {'algorithm': 'mdgqn', 'mode': 'conditioned', 'action_grid': {
+        'lane_changes': [-1, 0, 1], 'acceleration_min': -1.0, 'acceleration_max': 0.0, 'acceleration_step': 1.0}})
+    policy = load_policy(tmp_path / 'c.pt')
+    assert policy.conditioned
+    g = graph(('a', 'b', ''))
+    w = np.array([0.25, 0.35, 0.15, 0.25, 0.6, 0.4])
+    expected = net(torch.from_numpy(g.features)[None], torch.from_numpy(g.adjacency)[None],
+                   torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
+    np.testing.assert_allclose(policy.q_values(g, w), expected, rtol=1e-6)
+    with pytest.raises(PolicyError, match='needs the mode weights'):
+        PolicyController(policy, shield=None)
+
+
+def test_relabelled_rewards_score_each_transition_under_its_own_weights():
+    batch = make_batch()
+    batch = {**batch, 'returns': np.concatenate([batch['returns']] * 2),
+             'global_returns': np.concatenate([batch['global_returns']] * 2)}
+    weights = np.array([[1.0, 0, 0, 0, 1.0, 0], [0.5, 0.5, 0, 0, 0.5, 0.5]])
+    rewards = scored_rewards(batch, weights, 'own')
+    assert rewards[0, 0] == pytest.approx(1.0) and rewards[1, 0] == pytest.approx(0.25)

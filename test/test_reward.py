@@ -1,56 +1,78 @@
-"""The reward function matrix, each sub-reward pinned against hand-computed values."""
+"""The reward function matrix, each sub-reward pinned against hand-computed values, and its
+vector form: owners, per-metre incentives, any mode's scalar from one vector."""
 import math
+import re
 
 import numpy as np
 import pytest
 
-from exit_decision.reward import BaselineReward, MatrixReward, StepRewardInputs
+from exit_decision.reward import (BaselineReward, MatrixReward, StepRewardInputs, check_weight_input,
+                                  mode_weights, scalar, weight_input)
 from exit_decision.traffic import Arrival, Collision, StepResult, TrafficSnapshot
 
 from conftest import make_vehicle
 
+STEP = 0.1
+
 
 @pytest.fixture()
 def literal(project_config):
-    return MatrixReward(project_config.reward('literal'), project_config.mode('CONP'))
+    return MatrixReward(project_config.reward('literal'), STEP)
 
 
 @pytest.fixture()
 def bounded(project_config):
-    return MatrixReward(project_config.reward('bounded'), project_config.mode('AGGI'))
+    return MatrixReward(project_config.reward('bounded'), STEP)
 
 
-def step_of(vehicles, arrivals=(), collisions=(), lane_changers=()):
+@pytest.fixture()
+def calibrated(project_config):
+    return MatrixReward(project_config.reward('calibrated'), STEP)
+
+
+def step_of(vehicles, arrivals=(), collisions=(), lane_changers=(), released=()):
     return StepResult(step=1, time=0.1, vehicles=list(vehicles), arrivals=list(arrivals),
-                      collisions=list(collisions), lane_changers=list(lane_changers))
+                      collisions=list(collisions), lane_changers=list(lane_changers), released=frozenset(released))
 
 
-def test_result_rewards_exit_1_of_cavs_and_hv2_and_punishes_any_collision(literal):
+def inputs(step, lane_changes=0):
+    return StepRewardInputs(step, TrafficSnapshot(step.vehicles), lane_changes)
+
+
+def test_result_rewards_exits_to_their_cav_or_shared_and_collisions_to_the_cavs_in_them(literal):
     step = step_of([], arrivals=[Arrival('c', 'CAV', 'Exit_1'), Arrival('h', 'HV2', 'Exit_1'),
                                  Arrival('x', 'CAV', 'Exit_0'), Arrival('y', 'HV1', 'Exit_1')],
-                   collisions=[Collision('a', 'b', 'HV1', 'HV2'), Collision('c', 'd', 'CAV', 'HV1')])
-    assert literal.result(step) == (600.0, -60000.0)
-    assert literal.result(step_of([])) == (0.0, 0.0)
+                   collisions=[Collision('a', 'b', 'HV1', 'HV2'), Collision('d', 'e', 'CAV', 'HV1')])
+    own, shared = literal.raw(inputs(step))
+    assert own['c'][0].tolist() == [300.0, 0.0]
+    assert own['d'][0].tolist() == [0.0, -60000.0], 'one -60000 per step, owned by the CAV in a collision'
+    assert shared[0].tolist() == [300.0, 0.0], 'an HV2 exit belongs to no CAV'
+    _, shared = literal.raw(inputs(step_of([], collisions=[Collision('a', 'b', 'HV1', 'HV2')])))
+    assert shared[0].tolist() == [0.0, -60000.0], 'a collision without a CAV is shared'
 
 
 def test_efficiency_bands(literal):
-    in_band = make_vehicle('a', 'CAV', speed=20.0)                 # v_min 10, v_max 25
-    too_fast = make_vehicle('b', 'CAV', speed=27.0)
-    too_slow = make_vehicle('c', 'CAV', speed=4.0)
-    ramp = make_vehicle('d', 'CAV', speed=10.0, edge='Exit_1', limit=15.0)  # v_min 5, v_max 15
-    assert literal.efficiency([in_band]) == pytest.approx((math.exp(6 * 10 / 25), 0.0))
-    assert literal.efficiency([too_fast]) == pytest.approx((0.0, -math.exp(2.0)))
-    assert literal.efficiency([too_slow]) == pytest.approx((0.0, -math.exp(1 + 6 / 3)))
-    assert literal.efficiency([ramp]) == pytest.approx((math.exp(6 * 5 / 15), 0.0))
+    assert literal.efficiency_one(make_vehicle('a', 'CAV', speed=20.0)) == pytest.approx((math.exp(6 * 10 / 25), 0.0))
+    assert literal.efficiency_one(make_vehicle('b', 'CAV', speed=27.0)) == pytest.approx((0.0, -math.exp(2.0)))
+    assert literal.efficiency_one(make_vehicle('c', 'CAV', speed=4.0)) == pytest.approx((0.0, -math.exp(1 + 6 / 3)))
+    ramp = make_vehicle('d', 'CAV', speed=10.0, edge='Exit_1', limit=15.0)   # v_min 5, v_max 15
+    assert literal.efficiency_one(ramp) == pytest.approx((math.exp(6 * 5 / 15), 0.0))
 
 
-def test_comfort_counts_smooth_vehicles_braking_and_lane_changes(literal):
-    vehicles = [make_vehicle('a', acceleration=1.9), make_vehicle('b', acceleration=-2.0),
-                make_vehicle('c', acceleration=-3.0), make_vehicle('d', acceleration=-4.5),
-                make_vehicle('e', 'CAV', acceleration=-6.0)]
-    incentive, punishment = literal.comfort(vehicles, lane_changes=4)
-    assert incentive == pytest.approx(2 * math.exp(3))
-    assert punishment == pytest.approx(-2000 * 2 - math.exp(2.0))
+def test_calibrated_incentives_count_per_metre_driven(calibrated, literal):
+    cav = make_vehicle('a', 'CAV', speed=20.0, acceleration=0.0)
+    metres = 20.0 * STEP
+    assert calibrated.efficiency_one(cav)[0] == pytest.approx(literal.efficiency_one(cav)[0] * metres)
+    assert calibrated.comfort_one(cav)[0] == pytest.approx(math.exp(3) * metres)
+    standing = make_vehicle('s', 'CAV', speed=0.0)
+    assert calibrated.comfort_one(standing)[0] == 0.0, 'standing still earns no incentive'
+
+
+def test_comfort_per_vehicle_and_the_shared_lane_change_term(literal):
+    assert literal.comfort_one(make_vehicle('a', acceleration=1.9)) == pytest.approx((math.exp(3), 0.0))
+    assert literal.comfort_one(make_vehicle('c', acceleration=-3.0)) == (0.0, 0.0)
+    assert literal.comfort_one(make_vehicle('d', acceleration=-4.5)) == (0.0, -2000.0)
+    assert literal.lane_change_punishment(4) == pytest.approx(-math.exp(2.0))
 
 
 @pytest.mark.parametrize('t_follower, t_leader, expected', [
@@ -73,27 +95,41 @@ def test_time_gaps_use_the_closing_vehicles_in_the_same_lane(literal):
     assert literal.time_gaps(cav, snapshot) == (pytest.approx(6.0), math.inf)
 
 
-def test_trace_formula_equals_the_weighted_sum(literal, project_config):
-    sub = np.array([[300.0, -60000.0], [10.0, -3.0], [200.0, -2001.0], [7.0, -5.0]])
-    breakdown = literal.combine(sub)
-    mode = project_config.mode('CONP')
-    s = -60000.0 - 2001.0
-    k_incentive = [0.4 * math.exp(s / 100000), 0.4 * math.exp(s / 80000), 0.4, 0.4 * math.exp(s / 150000)]
-    k_decision = [mode.decision_weights.result, mode.decision_weights.efficiency,
-                  mode.decision_weights.comfort, mode.decision_weights.safety]
-    expected = sum(k_decision[i] * (k_incentive[i] * sub[i, 0] + 0.6 * sub[i, 1]) for i in range(4))
-    assert breakdown.total == pytest.approx(expected)
-    np.testing.assert_allclose(breakdown.weights[:, 0], k_incentive)
+def test_any_modes_scalar_from_one_vector_is_the_papers_trace_formula(literal, project_config):
+    braking = make_vehicle('b', 'CAV', speed=15.0, acceleration=-6.0)
+    cruising = make_vehicle('c', 'CAV', position=200.0, speed=20.0, acceleration=0.0)
+    step = step_of([braking, cruising], arrivals=[Arrival('x', 'CAV', 'Exit_1')],
+                   collisions=[Collision('h1', 'h2', 'HV1', 'HV1')])
+    vector = literal.vector(inputs(step, lane_changes=2))
+    own, shared = literal.raw(inputs(step, lane_changes=2))
+    sub = shared + sum(own.values())
+    s = sub[0, 1] + sub[2, 1]                       # r_result_P + r_comfort_P
+    for name in ('CONP', 'AGGI', 'A1b'):
+        mode = project_config.mode(name)
+        k_i, k_p = mode.incentive, mode.punishment
+        k_incentive = [k_i * math.exp(s / 100000), k_i * math.exp(s / 80000), k_i, k_i * math.exp(s / 150000)]
+        k_decision = weight_input(mode)[:4]
+        expected = sum(k_decision[i] * (k_incentive[i] * sub[i, 0] + k_p * sub[i, 1]) for i in range(4))
+        assert scalar(vector.total(), mode_weights(mode)) == pytest.approx(expected)
+    np.testing.assert_allclose(vector.total(), vector.shared + vector.per_vehicle['b'] + vector.per_vehicle['c']
+                               + vector.per_vehicle['x'])
+
+
+def test_a_released_cav_earns_nothing_more(calibrated):
+    cav = make_vehicle('gone', 'CAV', speed=20.0)
+    own, _ = calibrated.raw(inputs(step_of([cav], released=['gone'])))
+    assert 'gone' not in own
 
 
 def test_bounded_reward_stays_bounded_on_extreme_inputs(bounded, literal):
     runaway = make_vehicle('cav', 'CAV', speed=48.0)            # the probe's runaway CAV
-    assert literal.efficiency([runaway])[1] == pytest.approx(-math.exp(23.0))
-    assert bounded.efficiency([runaway])[1] == pytest.approx(-math.exp(5.0))
-    assert bounded.comfort([], lane_changes=1000)[1] == pytest.approx(-math.exp(5.0))
-    assert literal.comfort([], lane_changes=60)[1] == pytest.approx(-math.exp(30.0))
-    step = step_of([runaway] * 15, collisions=[Collision('a', 'b', 'CAV', 'HV1')])
-    total = bounded(StepRewardInputs(step, TrafficSnapshot([runaway]), 1000)).total
+    assert literal.efficiency_one(runaway)[1] == pytest.approx(-math.exp(23.0))
+    assert bounded.efficiency_one(runaway)[1] == pytest.approx(-math.exp(5.0))
+    assert bounded.lane_change_punishment(1000) == pytest.approx(-math.exp(5.0))
+    assert literal.lane_change_punishment(60) == pytest.approx(-math.exp(30.0))
+    step = step_of([runaway], collisions=[Collision('a', 'b', 'CAV', 'HV1')])
+    total = scalar(bounded.vector(StepRewardInputs(step, TrafficSnapshot([runaway]), 1000)).total(),
+                   np.full((4, 2), 0.5))
     assert math.isfinite(total) and -1000 < total < 0
 
 
@@ -104,4 +140,21 @@ def test_baseline_reward(project_config):
                    collisions=[Collision('a', 'b', 'HV1', 'HV1')], lane_changers=['cav', 'h'])
     c = project_config.reward('baseline')
     expected = c.intention + c.speed * 1.0 - c.lane_change * 1 - c.collision * 1
-    assert reward(StepRewardInputs(step, TrafficSnapshot(step.vehicles), 2)).total == pytest.approx(expected)
+    total = reward.vector(inputs(step, 2)).total()
+    for mode in ('AGGI', 'CONP'):
+        assert scalar(total, reward.weights(project_config.mode(mode))) == pytest.approx(expected)
+
+
+@pytest.mark.parametrize('weights, reason', [
+    ([0.25, 0.35, 0.15, 0.25, 0.6, 0.4], None),
+    ([0.25, 0.35, 0.15, 0.25, 0.6], 'expected 6 numbers'),
+    ([0.5, 0.35, 0.15, 0.25, 0.6, 0.4], 'sum to 1, they sum to 1.25'),
+    ([0.25, 0.35, 0.15, 0.25, 0.7, 0.4], 'incentive \\+ punishment must be 1'),
+    ([1.2, -0.2, 0, 0, 0.5, 0.5], 'finite number >= 0'),
+])
+def test_weight_inputs_are_checked_with_a_reason(weights, reason):
+    result = check_weight_input(weights)
+    if reason is None:
+        assert result is None
+    else:
+        assert re.search(reason, result)

@@ -96,11 +96,39 @@ def test_lane_changes_move_one_lane_and_never_off_the_road(project_config):
 def test_the_lane_held_at_a_diverge_picks_the_exit(project_config, lane, right_after, expected_exit):
     def command_at(result):
         return {v.vehicle_id: CavCommand(-1 if right_after and v.position > right_after and v.lane_index
-                                         else 0, 0.0) for v in result.vehicles}
+                                         else 0, 0.0) for v in result.vehicles if v.controlled}
     with HighwaySimulation(only(project_config, CAV=(1, lane)), cav_driver='policy') as sim:
         results = run_until_empty(sim, 0, command_at)
     assert exits_of(results) == {'CAV_0': expected_exit}
     assert results[-1].terminated
+
+
+@pytest.mark.parametrize('lane, missed_at', [(2, 'Highway_1'), (0, 'Highway_0')])
+def test_a_cav_that_missed_exit_1_is_released_to_sumo_and_does_not_stand(project_config, lane, missed_at):
+    """The step-cap case: a policy that brakes gently after the exit was missed held the
+    road until the cap. Released to SUMO's driver, the CAV takes no more commands and drives
+    off; the episode ends by itself."""
+    def brake_once_missed(result):
+        return {v.vehicle_id: CavCommand(0, -0.5 if v.position > 300.0 else 0.0)
+                for v in result.vehicles if v.controlled}
+    with HighwaySimulation(only(project_config, CAV=(1, lane)), cav_driver='policy') as sim:
+        results = run_until_empty(sim, 0, brake_once_missed)
+        states = [v for r in results for v in r.vehicles]
+        released_at = next(v for v in states if not v.controlled)
+        assert released_at.edge_id in (missed_at, 'Highway_2', 'Exit_0')
+        assert results[-1].terminated and not results[-1].truncated, 'no standstill until the step cap'
+    assert all(not v.controlled for v in states if v.position > released_at.position)
+    assert 'CAV_0' in results[-1].released
+    assert exits_of(results)['CAV_0'] != 'Exit_1'
+
+
+def test_a_released_cav_takes_no_command(project_config):
+    with HighwaySimulation(only(project_config, CAV=(1, 2)), cav_driver='policy') as sim:
+        result = sim.reset(0)
+        while not any(not v.controlled for v in result.vehicles):
+            result = sim.step({v.vehicle_id: CavCommand(0, 0.0) for v in result.vehicles if v.controlled})
+        with pytest.raises(CommandError, match='does not control'):
+            sim.step({'CAV_0': CavCommand(0, -8.0)})
 
 
 def test_hv2_moves_right_when_clear_and_takes_exit_1(project_config):

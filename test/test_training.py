@@ -1,4 +1,5 @@
-"""A short training run end to end: finite losses, a checkpoint that evaluates, resume."""
+"""Short training runs end to end: finite losses, checkpoints chosen against the teacher,
+the conditioned network evaluated at every mode, resume."""
 import csv
 import math
 
@@ -7,13 +8,14 @@ import pytest
 from exit_decision.config import load_project
 from exit_decision.evaluation.report import evaluate_runs, read_summary
 from exit_decision.learning.trainer import Trainer
+from exit_decision.learning.validation import INFEASIBLE, selection_score
 from exit_decision.policy import load_policy
 
 from ros_helpers import small_config_dir
 
-TINY = {'training': {'warmup_decisions': 10, 'replay_size': 2000,
+TINY = {'training': {'warmup_decisions': 10, 'replay_size': 2000, 'batch_size': 8,
                      'demonstrations': {'episodes': 1, 'pretrain_updates': 20},
-                     'validation': {'every_episodes': 2, 'episodes': 1}}}
+                     'validation': {'every_episodes': 2, 'episodes': 1, 'parallel': False}}}
 
 
 @pytest.fixture(scope='module')
@@ -26,25 +28,37 @@ def rows(path):
         return list(csv.DictReader(stream))
 
 
-def test_short_training_run_gives_finite_losses_and_an_evaluable_policy(config_dir, tmp_path):
-    own_demonstrator = {'modes': {'modes': {'AGGI': {'rule_based': {'time_headway': 0.9}}}}}
-    config = load_project(config_dir, overrides=[TINY, own_demonstrator])
-    trainer = Trainer(config, 'mdgqn', 'AGGI', 0, tmp_path / 'run')
-    assert trainer.demonstrator.parameters.time_headway == 0.9, "the mode's demonstrator, not env.yaml's"
+def test_conditioned_training_run_and_its_evaluation_at_every_mode(config_dir, tmp_path):
+    config = load_project(config_dir, overrides=[TINY])
+    trainer = Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'run')
+    assert trainer.demonstrator.parameters == config.env.rule_based, 'one neutral teacher'
     policy_path = trainer.run(episodes=2, progress=False)
     log = rows(tmp_path / 'run' / 'training.csv')
-    assert len(log) == 2
-    assert all(math.isfinite(float(row['loss'])) for row in log)
-    assert len(rows(tmp_path / 'run' / 'validation.csv')) == 2, 'after pre-training and after episode 2'
+    assert len(log) == 2 and all(math.isfinite(float(row['loss'])) for row in log)
+    validation = rows(tmp_path / 'run' / 'validation.csv')
+    assert [(int(r['episode']), r['mode']) for r in validation] == [
+        (e, m) for e in (0, 2) for m in ('AGGI', 'AGGP', 'CONI', 'CONP')], 'after pre-training and episode 2'
     policy = load_policy(policy_path)
-    assert policy.metadata['algorithm'] == 'mdgqn' and policy.metadata['mode'] == 'AGGI'
-    assert policy.metadata['multi_step'] == 3
-    evaluate_runs(config, [policy_path], ['rule_based', 'rule_based:AGGI'], episodes=1, seed=10_000,
+    assert policy.conditioned and policy.metadata['mode'] == 'conditioned'
+    evaluate_runs(config, [policy_path], ['rule_based'], ['AGGI', 'CONP'], episodes=1, seed=10_000,
                   out_dir=tmp_path / 'eval', command='test')
+    names = {p.name for p in (tmp_path / 'eval').iterdir()}
+    assert {'rule_based_AGGI.csv', 'rule_based_CONP.csv', 'mdgqn_conditioned_AGGI.csv',
+            'mdgqn_conditioned_CONP.csv', 'comparison.md'} <= names
     summary = read_summary(tmp_path / 'eval' / 'summary.csv')
-    assert set(summary) == {'rule_based', 'rule_based_AGGI', 'mdgqn_AGGI'}
-    assert 0.0 <= summary['mdgqn_AGGI']['p_CAV'][0] <= 1.0
-    assert (tmp_path / 'eval' / 'mdgqn_AGGI_actions.csv').exists()
+    teacher = {m: float(rows(tmp_path / 'eval' / f'rule_based_{m}.csv')[0]['reward']) for m in ('AGGI', 'CONP')}
+    assert teacher['AGGI'] != teacher['CONP'], 'one teacher episode, scored under each mode'
+    assert 0.0 <= summary['mdgqn_conditioned_AGGI']['p_CAV'][0] <= 1.0
+
+
+def test_selection_prefers_the_smallest_gain_among_safe_candidates():
+    safe = {'p_CAV': 1.0, 'p_collision_CAV': 0.0, 'capped': 0.0}
+    good = selection_score({'AGGI': {**safe, 'gain': 0.3}, 'CONP': {**safe, 'gain': 0.1}}, 0.99, 0.0067)
+    worse = selection_score({'AGGI': {**safe, 'gain': 0.5}, 'CONP': {**safe, 'gain': 0.05}}, 0.99, 0.0067)
+    unsafe = selection_score({'AGGI': {**safe, 'gain': 2.0}, 'CONP': {**safe, 'gain': 2.0, 'p_CAV': 0.95}},
+                             0.99, 0.0067)
+    assert good == pytest.approx(0.1) and worse < good
+    assert unsafe < INFEASIBLE < worse
 
 
 def test_training_resumes_from_its_last_state(config_dir, tmp_path):
@@ -53,6 +67,7 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
     trainer = Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run')
     trainer.run(episodes=3, resume=tmp_path / 'run' / 'last.pt', progress=False)
     assert [int(r['episode']) for r in rows(tmp_path / 'run' / 'training.csv')] == [0, 1, 2]
+    assert {r['mode'] for r in rows(tmp_path / 'run' / 'validation.csv')} == {'CONP'}
     with pytest.raises(FileExistsError, match='holds an earlier run'):
         Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=3, progress=False)
     with pytest.raises(ValueError, match='a gqn/CONP run, not mdgqn/CONP'):

@@ -37,10 +37,11 @@ class RuleBasedDriver:
         self.parameters = parameters
 
     @classmethod
-    def for_env(cls, env: ExitDecisionEnv) -> RuleBasedDriver:
-        """The driver for an environment's CAVs: its action grid, shield, road and mode."""
+    def for_env(cls, env: ExitDecisionEnv, parameters: RuleBasedConfig | None = None) -> RuleBasedDriver:
+        """The neutral driver for an environment's CAVs (env.yaml's ``rule_based``, the same for
+        every mode), or other ``parameters`` (the reward sanity sweep)."""
         return cls(env.actions, env.shield, env.sim.geometry, env.config.scenario.road.ramp_speed_limit,
-                   env.config.rule_based(env.mode))
+                   parameters or env.config.env.rule_based)
 
     def target_lane(self, vehicle: VehicleState) -> int:
         if vehicle.position < self.geometry.merge_done_at['Highway_0']:

@@ -109,7 +109,7 @@ class Shield:
                 if ahead.leader is not None:
                     ok &= self.stop_capable(vehicle, ahead.leader_gap, ahead.leader.speed)
             if c.human_follower_braking and around.follower is not None \
-                    and not around.follower.is_cav and around.follower_gap < c.human_follower_distance:
+                    and not around.follower.controlled and around.follower_gap < c.human_follower_distance:
                 ok &= grid.accelerations > c.hard_braking
             allowed[rows] = ok
         if not allowed.any():

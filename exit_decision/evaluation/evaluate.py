@@ -11,6 +11,8 @@ from tqdm import tqdm
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
+from exit_decision.policy import GraphPolicy, PolicyController
+from exit_decision.reward import scalar, weight_input
 from exit_decision.traffic import VehicleState
 
 
@@ -51,6 +53,18 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
     return env.episode_log.metrics()
 
 
+def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
+                 result: EvaluationResult | None = None, desc: str | None = None) -> list[dict]:
+    """Per seed: the episode's metrics and its reward vector (to score it under any mode);
+    ``result`` collects action counts and shield overrides; ``desc``: a progress bar."""
+    result = result if result is not None else EvaluationResult()
+    out = []
+    for seed in tqdm(seeds, desc=desc, unit='ep', disable=desc is None):
+        metrics = run_episode(env, controller, seed, result)
+        out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
+    return out
+
+
 def evaluate(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
              progress: bool = True) -> EvaluationResult:
     result = EvaluationResult()
@@ -59,3 +73,35 @@ def evaluate(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequenc
         metrics = run_episode(env, controller, seed, result)
         result.episodes.append({'seed': seed, **metrics})
     return result
+
+
+@dataclass
+class EvaluatedRun:
+    """A run's episodes under one scoring mode (a conditioned policy: acting at that mode)."""
+    label: str                  # <run>_<mode>
+    episodes: list[dict]
+    result: EvaluationResult
+
+
+def scored_episodes(episodes: list[dict], weights) -> list[dict]:
+    """Per-episode rows with ``reward`` = the episode's global scalar return under weights."""
+    return [{**{k: v for k, v in e.items() if k != 'reward_vector'}, 'reward': float(scalar(e['reward_vector'], weights))}
+            for e in episodes]
+
+
+def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[str], seeds: list[int]) -> list[EvaluatedRun]:
+    """A policy on the seeds, scored under each mode: a conditioned one acts at each mode's
+    weights, a per-mode one acts once (for its own mode)."""
+    config = env.config
+    policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
+                            env.actions)
+    name = f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
+    runs, played, result = [], None, None
+    for mode in modes:
+        if policy.conditioned or played is None:
+            result = EvaluationResult()
+            weights = weight_input(config.mode(mode)) if policy.conditioned else None
+            played = run_episodes(env, PolicyController(policy, env.shield, weights), seeds, result,
+                                  desc=f'{name} at {mode}' if policy.conditioned else name)
+        runs.append(EvaluatedRun(f'{name}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result))
+    return runs

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from exit_decision.scenario.sumo_inputs import TASK_EXIT
 from exit_decision.traffic import StepResult
 
-EXIT_TASK = 'Exit_1'
 METRICS = ('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking', 'braking_steps',
            'p_CAV', 'p_HV2', 'reward', 'steps')
 
@@ -36,8 +36,9 @@ class EpisodeLog:
     entered: dict[str, set[str]] = field(default_factory=dict)
     exits: dict[tuple[str, str], int] = field(default_factory=dict)   # (class, exit edge) -> count
     rewards: list[float] = field(default_factory=list)
+    reward_vector: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))  # summed over steps
 
-    def record(self, step: StepResult, reward: float | None = None) -> None:
+    def record(self, step: StepResult, reward: float | None = None, reward_vector: np.ndarray | None = None) -> None:
         self.steps += 1
         for vehicle in step.vehicles:
             self.entered.setdefault(vehicle.vehicle_class, set()).add(vehicle.vehicle_id)
@@ -55,6 +56,8 @@ class EpisodeLog:
             self.exits[key] = self.exits.get(key, 0) + 1
         if reward is not None:
             self.rewards.append(reward)
+        if reward_vector is not None:
+            self.reward_vector += reward_vector
 
     def count(self, vehicle_class: str) -> int:
         return len(self.entered.get(vehicle_class, ()))
@@ -69,8 +72,8 @@ class EpisodeLog:
             'p_collision_CAV': self.cav_collisions / n_cav if n_cav else nan,
             'N_braking': float(self.braking_events),
             'braking_steps': float(self.braking_steps),
-            'p_CAV': self.exits.get(('CAV', EXIT_TASK), 0) / n_cav if n_cav else nan,
-            'p_HV2': self.exits.get(('HV2', EXIT_TASK), 0) / n_hv2 if n_hv2 else nan,
+            'p_CAV': self.exits.get(('CAV', TASK_EXIT), 0) / n_cav if n_cav else nan,
+            'p_HV2': self.exits.get(('HV2', TASK_EXIT), 0) / n_hv2 if n_hv2 else nan,
             'reward': float(sum(self.rewards)) if self.rewards else nan,
             'steps': float(self.steps),
         }

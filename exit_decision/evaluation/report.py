@@ -8,51 +8,62 @@ from pathlib import Path
 
 import numpy as np
 
+from exit_decision.actions import ActionGrid
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.evaluation.evaluate import evaluate
+from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
-from exit_decision.policy import PolicyController, load_policy
+from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 
 
-def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequence[str], episodes: int,
-                  seed: int, out_dir: Path, command: str) -> str:
-    """Evaluate each policy and reference driver on seeds seed..seed+episodes-1.
+REFERENCE_DRIVERS = ('sumo', 'rule_based')
+TEACHER = 'rule_based'
+#: columns of the paired comparison with the teacher (difference run - teacher per seed)
+PAIRED_METRICS = ('reward', 'v_AVs', 'p_CAV', 'p_collision_CAV', 'N_braking')
 
-    Writes per run ``<label>.csv`` (per episode) and ``<label>_actions.csv`` (how often each
-    action was chosen), and ``summary.md`` / ``summary.csv`` for all runs."""
+
+def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequence[str], modes: Sequence[str],
+                  episodes: int, seed: int, out_dir: Path, command: str) -> str:
+    """Evaluate each policy and reference driver on seeds seed..seed+episodes-1, scored under
+    each named mode's reward.
+
+    A driver or per-mode policy drives once and is scored under every mode; a conditioned
+    policy drives at each mode's weights. Writes ``<run>_<mode>.csv`` (per episode; ``reward``
+    = the episode's global scalar return under that mode, unscaled), ``<run>_<mode>_actions.csv``,
+    ``summary.md`` / ``summary.csv`` (mean and std), and ``comparison.md`` / ``comparison.csv``
+    (every run against the neutral teacher under the same mode, paired over seeds)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     seeds = list(range(seed, seed + episodes))
-    rows, summaries = [], []
+    for mode in modes:
+        config.mode(mode)
+    runs: list[EvaluatedRun] = []
     for driver in drivers:
-        name, _, mode = driver.partition(':')   # rule_based:AGGI = that mode's demonstrator
-        env = ExitDecisionEnv(config, mode=mode or None, cav_driver='sumo' if name == 'sumo' else 'policy')
-        controller = None if name == 'sumo' else RuleBasedDriver.for_env(env)
-        rows.append((driver.replace(':', '_'), evaluate(env, controller, seeds), env))
+        env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if driver == 'sumo' else 'policy')
+        try:
+            controller = None if driver == 'sumo' else RuleBasedDriver.for_env(env)
+            result = EvaluationResult()
+            played = run_episodes(env, controller, seeds, result, desc=driver)
+        finally:
+            env.close()
+        runs += [EvaluatedRun(f'{driver}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result)
+                 for mode in modes]
+    env = ExitDecisionEnv(config, mode=modes[0])
+    try:
+        for path in policies:
+            runs += evaluate_policy(env, load_policy(path), modes, seeds)
+    finally:
         env.close()
-    for path in policies:
-        policy = load_policy(path)
-        env = ExitDecisionEnv(config, mode=policy.metadata['mode'])
-        policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set,
-                                config.env.decision_interval, env.actions)
-        label = f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
-        rows.append((label, evaluate(env, PolicyController(policy, env.shield), seeds), env))
-        env.close()
-    for label, result, env in rows:
-        write_rows(out_dir / f'{label}.csv', result.episodes)
-        summary = summarize(result.episodes)
-        summaries.append((label, summary))
-        if result.decisions:
-            with open(out_dir / f'{label}_actions.csv', 'w', newline='') as stream:
-                writer = csv.writer(stream)
-                writer.writerow(['lane_change', 'acceleration', 'count', 'share'])
-                total = result.action_counts.sum()
-                for index in np.flatnonzero(result.action_counts):
-                    writer.writerow([env.actions.lane_change_of[index], env.actions.acceleration_of[index],
-                                     result.action_counts[index], result.action_counts[index] / total])
-            summary['shield_overrides'] = (result.overrides / result.decisions, 0.0)
+    summaries = []
+    for run in runs:
+        write_rows(out_dir / f'{run.label}.csv', run.episodes)
+        summary = summarize(run.episodes)
+        if run.result.decisions:
+            write_action_counts(out_dir / f'{run.label}_actions.csv', run.result, ActionGrid(config.env.actions))
+            summary['shield_overrides'] = (run.result.overrides / run.result.decisions, 0.0)
+        summaries.append((run.label, summary))
     table = markdown_table(summaries)
     with open(out_dir / 'summary.csv', 'w', newline='') as stream:
         writer = csv.writer(stream)
@@ -60,10 +71,65 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         for label, summary in summaries:
             for metric, (mean, std) in summary.items():
                 writer.writerow([label, metric, mean, std])
-    (out_dir / 'summary.md').write_text(
-        f'# Evaluation on seeds {seeds[0]}..{seeds[-1]} ({episodes} episodes)\n\n'
-        f'Made by `{command}`; mean ± std over episodes.\n\n{table}\n', encoding='utf-8')
+    header = f'# Evaluation on seeds {seeds[0]}..{seeds[-1]} ({episodes} episodes)\n\nMade by `{command}`'
+    (out_dir / 'summary.md').write_text(f'{header}; mean ± std over episodes.\n\n{table}\n', encoding='utf-8')
+    comparison = paired_comparison(runs, modes, config.scenario.max_steps)
+    if comparison:
+        write_rows(out_dir / 'comparison.csv', comparison)
+        (out_dir / 'comparison.md').write_text(
+            f'{header}.\n\n{comparison_markdown(comparison)}\n', encoding='utf-8')
     return table
+
+
+def write_action_counts(path: Path, result: EvaluationResult, grid) -> None:
+    with open(path, 'w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(['lane_change', 'acceleration', 'count', 'share'])
+        total = result.action_counts.sum()
+        for index in np.flatnonzero(result.action_counts):
+            writer.writerow([grid.lane_change_of[index], grid.acceleration_of[index],
+                             result.action_counts[index], result.action_counts[index] / total])
+
+
+def paired_comparison(runs: Sequence[EvaluatedRun], modes: Sequence[str], max_steps: int) -> list[dict]:
+    """Every run against the teacher under the same mode: per metric the run's mean (and
+    95% interval where it is a rate), and the mean paired difference with its 95% interval."""
+    by_label = {run.label: run for run in runs}
+    rows = []
+    for mode in modes:
+        teacher = by_label.get(f'{TEACHER}_{mode}')
+        if teacher is None:
+            continue
+        theirs = {e['seed']: e for e in teacher.episodes}
+        for run in runs:
+            if not run.label.endswith(f'_{mode}') or run is teacher:
+                continue
+            row = {'run': run.label[:-len(mode) - 1], 'mode': mode, 'episodes': len(run.episodes),
+                   'capped': sum(e['steps'] >= max_steps for e in run.episodes)}
+            for metric in PAIRED_METRICS:
+                own = np.array([e[metric] for e in run.episodes], dtype=float)
+                diff = np.array([e[metric] - theirs[e['seed']][metric] for e in run.episodes], dtype=float)
+                mean, low, high = paired_interval(own)
+                row.update({metric: mean, f'{metric}_low': low, f'{metric}_high': high})
+                mean, low, high = paired_interval(diff)
+                row.update({f'd_{metric}': mean, f'd_{metric}_low': low, f'd_{metric}_high': high})
+            rows.append(row)
+    return rows
+
+
+def comparison_markdown(rows: Sequence[dict]) -> str:
+    """Each run minus the teacher (rule_based) under the same mode: mean [95% interval]."""
+    def cell(row: dict, key: str, digits: int = 3) -> str:
+        mark = ' ↑' if row[f'{key}_low'] > 0 else ' ↓' if row[f'{key}_high'] < 0 else ''
+        return f'{row[key]:+.{digits}f} [{row[f"{key}_low"]:+.{digits}f}, {row[f"{key}_high"]:+.{digits}f}]{mark}'
+    lines = ['| run | mode | return − teacher | v_AVs − teacher | p_CAV [95%] | p_collision_CAV [95%] | '
+             'N_braking − teacher |', '|---|---|---|---|---|---|---|']
+    for row in rows:
+        lines.append(f'| {row["run"]} | {row["mode"]} | {cell(row, "d_reward")} | {cell(row, "d_v_AVs")} | '
+                     f'{row["p_CAV"]:.3f} [{row["p_CAV_low"]:.3f}, {row["p_CAV_high"]:.3f}] | '
+                     f'{row["p_collision_CAV"]:.4f} [{row["p_collision_CAV_low"]:.4f}, {row["p_collision_CAV_high"]:.4f}] | '
+                     f'{cell(row, "d_N_braking", 2)} |')
+    return '\n'.join(lines)
 
 
 def read_summary(path: Path) -> dict[str, dict[str, tuple[float, float]]]:

@@ -1,10 +1,12 @@
 """GQN and MDGQN updates on graph batches (paper 000 Section 3; SPEC section 4).
 
-Every CAV row is a Q-learner with shared weights and the shared reward. For a row i that
-acted at t, with R the m-step return and gamma^K the window's discount:
+Every CAV row is a Q-learner with shared weights. For a row i that acted at t, with R_i the
+row's m-step return (its own credit or the shared reward, scored under the batch element's
+mode weights w by the trainer) and gamma^K the window's discount:
 - GQN:   y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_target(s')_i
 - MDGQN: y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_online(s')_i
-(the m of the window is a training setting: 1 for GQN, 3 for MDGQN by default). A row whose
+(the m of the window is a training setting: 1 for GQN, 3 for MDGQN by default). A
+mode-conditioned network evaluates every Q at the same w the reward was scored with. A row whose
 vehicle left (or the episode ended) has no bootstrap. Demonstration rows add DQfD's
 large-margin loss max_a [Q(s,a) + l(a, a_E)] - Q(s, a_E) over the allowed actions.
 Target networks follow by soft update: theta- <- tau theta + (1 - tau) theta-.
@@ -59,22 +61,23 @@ class GraphQAgent:
         b, r = rows[:, 0], rows[:, 1]
         next_mask = batch['next_masks'][b, r]
         alive = batch['alive'][b, r] & next_mask.any(-1)
-        target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows)
+        weights = batch.get('weights')
+        target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
         if self.settings.algorithm == 'mdgqn':
-            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows)
+            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
         else:
             chooser = target_q
         best = self.masked_argmax(chooser, next_mask)
         bootstrap = target_q.gather(1, best.unsqueeze(1)).squeeze(1)
         bootstrap = torch.where(alive, bootstrap, torch.zeros_like(bootstrap))
-        return batch['returns'][b] + batch['discounts'][b] * bootstrap
+        return batch['rewards'][b, r] + batch['discounts'][b] * bootstrap
 
     def losses(self, batch: dict[str, torch.Tensor], demo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(TD loss, margin loss) means over the acting rows (margin: demonstration rows only)."""
         rows = torch.nonzero(batch['actions'] >= 0)
         b, r = rows[:, 0], rows[:, 1]
         actions = batch['actions'][b, r]
-        q = self.online.cav_q_values(batch['features'], batch['adjacency'], rows)
+        q = self.online.cav_q_values(batch['features'], batch['adjacency'], rows, batch.get('weights'))
         q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
         with torch.no_grad():
             targets = self.td_targets(batch, rows)

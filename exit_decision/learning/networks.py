@@ -4,6 +4,11 @@ GCN layer (Kipf & Welling, SPEC eq. 5): Z = relu(D^-1/2 A D^-1/2 H W + b). The a
 graph builder makes already has self loops, so no identity is added here. Everything works
 on dense batched tensors: features (B, N, F), adjacency (B, N, N). N is whatever the input
 has: nothing here depends on the road.
+
+A *mode-conditioned* network (``num_weights`` > 0) is Q(s, a, w): the mode's weights w (the
+six numbers of ``reward.weight_input``) are appended to every row's features and to the
+head's input, as in conditioned multi-objective Q-learning (Abels et al. 2019), so one
+network serves every mode and any weight vector.
 """
 from __future__ import annotations
 
@@ -20,6 +25,7 @@ class NetworkShape:
     encoder: int = 64
     gcn: int = 64
     head: int = 128
+    num_weights: int = 0      # > 0: mode-conditioned, Q(s, a, w) with w of this length
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -48,21 +54,39 @@ class GraphQNetwork(nn.Module):
     def __init__(self, shape: NetworkShape):
         super().__init__()
         self.shape = shape
-        self.encoder = nn.Sequential(nn.Linear(shape.num_features, shape.encoder), nn.ReLU())
+        w = shape.num_weights
+        self.encoder = nn.Sequential(nn.Linear(shape.num_features + w, shape.encoder), nn.ReLU())
         self.gcn = GraphConvolution(shape.encoder, shape.gcn)
-        self.head = nn.Sequential(nn.Linear(shape.encoder + shape.gcn, shape.head), nn.ReLU(),
+        self.head = nn.Sequential(nn.Linear(shape.encoder + shape.gcn + w, shape.head), nn.ReLU(),
                                   nn.Linear(shape.head, shape.num_actions))
 
-    def embed(self, features: torch.Tensor, adjacency: torch.Tensor) -> torch.Tensor:
-        """Per-row embedding (B, N, encoder + gcn): the row's own code and its neighbourhood's."""
-        encoded = self.encoder(features)
-        return torch.cat([encoded, self.gcn(encoded, normalize_adjacency(adjacency))], dim=-1)
+    @property
+    def conditioned(self) -> bool:
+        return self.shape.num_weights > 0
 
-    def forward(self, features: torch.Tensor, adjacency: torch.Tensor) -> torch.Tensor:
-        return self.head(self.embed(features, adjacency))
+    def _with_weights(self, x: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+        """x (B, N, D) with each batch element's weights (B, W) appended to every row."""
+        if not self.conditioned:
+            return x
+        if weights is None:
+            raise ValueError('a mode-conditioned network needs the mode weights')
+        return torch.cat([x, weights[:, None, :].expand(-1, x.shape[1], -1).to(x.dtype)], dim=-1)
 
-    def cav_q_values(self, features: torch.Tensor, adjacency: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    def embed(self, features: torch.Tensor, adjacency: torch.Tensor,
+              weights: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-row embedding (B, N, encoder + gcn [+ W]): the row's own code, its
+        neighbourhood's (and the weights, for the head of a conditioned network)."""
+        encoded = self.encoder(self._with_weights(features, weights))
+        embedded = torch.cat([encoded, self.gcn(encoded, normalize_adjacency(adjacency))], dim=-1)
+        return self._with_weights(embedded, weights)
+
+    def forward(self, features: torch.Tensor, adjacency: torch.Tensor,
+                weights: torch.Tensor | None = None) -> torch.Tensor:
+        return self.head(self.embed(features, adjacency, weights))
+
+    def cav_q_values(self, features: torch.Tensor, adjacency: torch.Tensor, rows: torch.Tensor,
+                     weights: torch.Tensor | None = None) -> torch.Tensor:
         """Q values (R, A) of selected rows only, ``rows`` (R, 2) = (batch index, row): the head
         runs on those rows only."""
-        embedded = self.embed(features, adjacency)
+        embedded = self.embed(features, adjacency, weights)
         return self.head(embedded[rows[:, 0], rows[:, 1]])

@@ -1,12 +1,16 @@
 """Replay of m-step transitions between decisions, built so that windows never cross an episode.
 
-``EpisodeAccumulator`` collects an episode's decisions (graph, actions, masks, reward) and
-emits, for decision t, the transition to t + K with K = min(m, decisions left):
-R = sum_k gamma^k r_{t+k}; the bootstrap discount gamma^K, or 0 when the episode terminated
-inside the window; and per row whether the same vehicle is still in that row at t + K (a CAV
-that left or collided gets a terminal target). ``ReplayBuffer`` stores them in flat arrays
-(masks and adjacency bit-packed) and samples batches; demonstrations live in their own
-buffer that is never overwritten.
+``EpisodeAccumulator`` collects an episode's decisions (graph, actions, masks, reward
+vectors) and emits, for decision t, the transition to t + K with K = min(m, decisions left):
+returns R = sum_k gamma^k r_{t+k} as *reward vectors* (4 rows x [incentive, punishment],
+``exit_decision.reward``), so a sampled transition can be scored under any mode; the
+bootstrap discount gamma^K, or 0 when the episode terminated inside the window; and per row
+whether the same vehicle is still in that row at t + K (a CAV that left or collided gets a
+terminal target). Two returns are kept: each acting row's own credit (its own terms plus an
+equal share of the terms no CAV owns, summed only while the same vehicle holds the row) and
+the episode's global vector (the paper's shared reward, for the ablation).
+``ReplayBuffer`` stores them in flat arrays (masks and adjacency bit-packed) and samples
+batches; demonstrations live in their own buffer that is never overwritten.
 """
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from exit_decision.graph import TrafficGraph
+from exit_decision.reward import weights_of_input
 
 NO_ACTION = -1
 
@@ -24,7 +29,19 @@ class DecisionRecord:
     graph: TrafficGraph
     actions: np.ndarray      # (N,) int, NO_ACTION on rows that did not act
     masks: np.ndarray        # (N, A) bool, the masks the actions were chosen under
-    reward: float = 0.0      # shared reward until the next decision
+    own: np.ndarray | None = None      # (N, 4, 2) each acting row's own reward vector until the next decision
+    shared: np.ndarray | None = None   # (4, 2) the terms no acting row owns
+
+    def credit(self) -> np.ndarray:
+        """(N, 4, 2): each acting row's own terms plus an equal share of the shared ones."""
+        acting = self.actions >= 0
+        credit = np.where(acting[:, None, None], self.own, 0.0)
+        if acting.any():
+            credit[acting] += self.shared / acting.sum()
+        return credit
+
+    def total(self) -> np.ndarray:
+        return self.own.sum(0) + self.shared
 
 
 @dataclass(frozen=True)
@@ -33,7 +50,8 @@ class Transition:
     adjacency: np.ndarray
     actions: np.ndarray
     masks: np.ndarray
-    ret: float
+    returns: np.ndarray      # (N, 4, 2) per-row credit, m-step discounted
+    global_return: np.ndarray  # (4, 2) the shared reward vector, m-step discounted
     discount: float
     alive: np.ndarray        # (N,) bool: same vehicle in the row at the next state
     next_features: np.ndarray
@@ -67,14 +85,30 @@ class EpisodeAccumulator:
     def _transition(self, t: int, end: int, terminated: bool) -> Transition:
         start, stop = self.records[t], self.records[end]
         span = end - t
-        ret = sum(self.gamma ** k * self.records[t + k].reward for k in range(span))
         ids, next_ids = np.array(start.graph.vehicle_ids), np.array(stop.graph.vehicle_ids)
+        returns, global_return = np.zeros_like(start.own), np.zeros((4, 2))
+        for k in range(span):
+            record = self.records[t + k]
+            same = np.array(record.graph.vehicle_ids) == ids
+            returns += self.gamma ** k * np.where(same[:, None, None], record.credit(), 0.0)
+            global_return += self.gamma ** k * record.total()
         return Transition(
             features=start.graph.features, adjacency=start.graph.adjacency, actions=start.actions,
-            masks=start.masks, ret=float(ret), discount=0.0 if terminated else self.gamma ** span,
+            masks=start.masks, returns=returns, global_return=global_return,
+            discount=0.0 if terminated else self.gamma ** span,
             alive=(ids == next_ids) & (ids != '') & stop.graph.cav_mask,
             next_features=stop.graph.features, next_adjacency=stop.graph.adjacency,
             next_masks=stop.masks)
+
+
+def scored_rewards(batch: dict[str, np.ndarray], weights: np.ndarray, credit: str) -> np.ndarray:
+    """(B, N) per-row rewards of a sampled batch under per-element mode weights (B, 6):
+    each row's own credit (``credit='own'``) or the global return for every row."""
+    multipliers = weights_of_input(weights)                              # (B, 4, 2)
+    if credit == 'own':
+        return (batch['returns'] * multipliers[:, None]).sum(axis=(-2, -1)).astype(np.float32)
+    rewards = (batch['global_returns'] * multipliers).sum(axis=(-2, -1))
+    return np.repeat(rewards[:, None], batch['returns'].shape[1], axis=1).astype(np.float32)
 
 
 class ReplayBuffer:
@@ -91,7 +125,8 @@ class ReplayBuffer:
         self.actions = np.full((capacity, n), NO_ACTION, np.int16)
         self.masks = np.zeros((capacity, n, packed_a), np.uint8)
         self.next_masks = np.zeros((capacity, n, packed_a), np.uint8)
-        self.returns = np.zeros(capacity, np.float32)
+        self.returns = np.zeros((capacity, n, 4, 2), np.float32)
+        self.global_returns = np.zeros((capacity, 4, 2), np.float32)
         self.discounts = np.zeros(capacity, np.float32)
         self.alive = np.zeros((capacity, n), bool)
         self.size = 0
@@ -109,7 +144,8 @@ class ReplayBuffer:
         self.actions[i] = transition.actions
         self.masks[i] = np.packbits(transition.masks, axis=-1)
         self.next_masks[i] = np.packbits(transition.next_masks, axis=-1)
-        self.returns[i], self.discounts[i] = transition.ret, transition.discount
+        self.returns[i], self.global_returns[i] = transition.returns, transition.global_return
+        self.discounts[i] = transition.discount
         self.alive[i] = transition.alive
         self._next = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
@@ -123,6 +159,7 @@ class ReplayBuffer:
             'actions': self.actions[indices].astype(np.int64),
             'masks': np.unpackbits(self.masks[indices], axis=-1, count=a).astype(bool),
             'next_masks': np.unpackbits(self.next_masks[indices], axis=-1, count=a).astype(bool),
-            'returns': self.returns[indices], 'discounts': self.discounts[indices],
+            'returns': self.returns[indices], 'global_returns': self.global_returns[indices],
+            'discounts': self.discounts[indices],
             'alive': self.alive[indices],
         }

@@ -1,20 +1,34 @@
-"""Training of one decision mode with GQN or MDGQN (SPEC section 4), with its measures.
+"""Training of GQN / MDGQN (SPEC section 4), per mode or one mode-conditioned network.
 
 The loop, per decision: Q values of the graph (one forward for all rows), then each CAV
 chooses under the shield, front to back: epsilon-greedy, the random action biased towards
 keeping the lane and a small acceleration; the env holds the actions for the decision
-interval; the m-step accumulator emits transitions; gradient updates sample the agent's
-replay and, for a share of the batch, the demonstrations of the rule-based driver (with
-DQfD's margin loss, its weight decaying linearly and never switched off). Every few episodes
-a greedy validation run scores the policy; the best one is kept as ``policy.pt``.
+interval; the m-step accumulator emits transitions whose returns are reward *vectors*
+(``exit_decision.reward``); gradient updates sample the agent's replay and, for a share of
+the batch, the demonstrations of the neutral rule-based driver (DQfD's margin loss, its
+weight decaying linearly and never switched off), and score each sampled transition under
+mode weights: the run's mode, or for a mode-conditioned network (``mode='conditioned'``)
+weights drawn afresh per transition from the configured modes and the simplex around them
+(relabelling, as in conditioned multi-objective Q-learning). Each CAV row learns from its
+own credit (its own terms plus an equal share of the rest) or, as an ablation, from the
+paper's global reward.
 
-Outputs in the run directory: ``training.csv`` (one row per episode: reward, loss, epsilon,
-metrics), ``validation.csv``, ``policy.pt`` (best), ``last.pt`` (resumable state),
-``config.json`` (everything that made the run).
+Checkpoints are chosen on validation runs against the teacher on the same seeds: a
+candidate's score is its smallest mean paired return gain over the teacher across the
+validation modes, and only candidates within the safety targets in every mode qualify.
+Validation runs in a second process (``validation.parallel``) while training goes on, so
+both cores work.
+
+Outputs in the run directory: ``training.csv`` (one row per episode), ``validation.csv``
+(one row per candidate and mode), ``policy.pt`` (best), ``last.pt`` (resumable state),
+``candidates/`` (checkpoints waiting for or done with validation), ``config.json``.
 """
 from __future__ import annotations
 
 import json
+import multiprocessing
+import shutil
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,17 +39,18 @@ from tqdm import tqdm
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.learning.agent import Algorithm, GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import NetworkShape
-from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer
+from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
+from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint
+from exit_decision.policy import git_revision, greedy_decision, q_values, save_policy
+from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input
 from exit_decision.tables import append_row
-from exit_decision.policy import GraphPolicy, PolicyController, git_revision, q_values, save_policy
-from exit_decision.traffic import VehicleState
 
 DEMONSTRATION_SEED = 800_000
 VALIDATION_SEED = 900_000
 EPISODE_SEED_STRIDE = 1_000_000
+CONDITIONED = 'conditioned'
 
 
 @dataclass
@@ -46,20 +61,44 @@ class TrainingState:
     best_score: float = -np.inf
 
 
+class WeightSampler:
+    """Mode weights for relabelling: one of the configured modes exactly, or a point of the
+    simplex near one (Dirichlet around its decision weights, Beta around its incentive)."""
+
+    def __init__(self, config: ProjectConfig, modes: list[str], exact_share: float, concentration: float,
+                 rng: np.random.Generator):
+        self.anchors = np.array([weight_input(config.mode(m)) for m in modes])
+        self.exact_share, self.concentration, self.rng = exact_share, concentration, rng
+
+    def sample(self, count: int) -> np.ndarray:
+        anchors = self.anchors[self.rng.integers(len(self.anchors), size=count)]
+        near = self.rng.random(count) >= self.exact_share
+        if near.any():
+            k = self.concentration
+            decision = np.array([self.rng.dirichlet(k * a[:4] + 1e-3) for a in anchors[near]])
+            incentive = np.array([self.rng.beta(k * a[4] + 1e-3, k * a[5] + 1e-3) for a in anchors[near]])
+            anchors[near] = np.column_stack([decision, incentive, 1.0 - incentive])
+        return anchors
+
+
 class Trainer:
     def __init__(self, config: ProjectConfig, algorithm: Algorithm, mode: str, seed: int, out_dir: Path):
         # Small networks: one thread is as fast as two here, and two threads collapse (80x
         # slower, measured) as soon as anything else runs on the other core.
         torch.set_num_threads(1)
         self.config, self.algorithm, self.mode, self.seed = config, algorithm, mode, seed
-        self.training = config.training
+        self.training = t = config.training
         self.out_dir = out_dir
-        self.env = ExitDecisionEnv(config, mode=mode)
+        self.conditioned = mode == CONDITIONED
+        c = t.conditioning
+        self.validation_modes = list(c.validation_modes) if self.conditioned else [config.mode(mode) and mode]
+        self.env = ExitDecisionEnv(config, mode=self.validation_modes[0])
         self.grid, self.shield = self.env.actions, self.env.shield
         self.rng = np.random.default_rng(seed)
-        t = self.training
-        self.shape = NetworkShape(self.env.graph_builder.num_features, self.grid.size,
-                                  t.network.encoder, t.network.gcn, t.network.head)
+        self.sampler = WeightSampler(config, list(c.modes), c.exact_share, c.concentration, self.rng) \
+            if self.conditioned else None
+        self.shape = NetworkShape(self.env.graph_builder.num_features, self.grid.size, t.network.encoder,
+                                  t.network.gcn, t.network.head, WEIGHT_INPUT_SIZE if self.conditioned else 0)
         self.agent = GraphQAgent(self.shape, UpdateSettings(
             algorithm, t.learning_rate, t.tau, t.demonstrations.margin, t.gradient_clip), seed)
         self.multi_step = t.algorithms[algorithm].multi_step
@@ -82,7 +121,11 @@ class Trainer:
         fraction = min(self.state.episode / d.margin_decay_episodes, 1.0)
         return d.margin_weight_start + (d.margin_weight_end - d.margin_weight_start) * fraction
 
-    # --- acting -----------------------------------------------------------------------------
+    def episode_weights(self) -> np.ndarray | None:
+        """The weights the policy acts for in a training episode (conditioned: drawn)."""
+        return self.sampler.sample(1)[0] if self.conditioned else None
+
+    # --- collecting ---------------------------------------------------------------------------
 
     def explore(self, mask: np.ndarray) -> int:
         """A random allowed action; biased: usually keep the lane, acceleration ~ N(0, std),
@@ -100,44 +143,35 @@ class Trainer:
         wanted = self.rng.normal(0.0, e.acceleration_std)
         return int(candidates[np.argmin(np.abs(grid.acceleration_of[candidates] - wanted))])
 
-    def run_episode(self, seed: int, demonstrate: bool, epsilon: float) -> list:
-        """One episode; returns its transitions (for the demo buffer or the agent's replay),
-        and trains along the way when not demonstrating."""
+    def collect_episode(self, seed: int, demonstrate: bool, epsilon: float,
+                        on_decision=None) -> list:
+        """One episode by the demonstrator or the epsilon-greedy policy; returns its
+        transitions. ``on_decision(transitions)`` is called after every decision (learning)."""
         env = self.env
         env.reset(seed=seed)
         accumulator = EpisodeAccumulator(self.multi_step, self.training.gamma)
-        transitions, losses = [], []
+        transitions = []
         keep = self.grid.index(0, 0.0)
+        weights = None if demonstrate else self.episode_weights()
         while True:
-            graph, vehicles = env.graph, env.sim.snapshot.vehicles
+            graph, snapshot = env.graph, env.sim.snapshot
             if demonstrate:
-                decision = self.demonstrator.decide(graph, vehicles)
+                decision = self.demonstrator.decide(graph, snapshot.vehicles)
             else:
-                q = q_values(self.agent.online, graph)
-                row_of = {vid: row for row, vid in enumerate(graph.vehicle_ids) if vid}
-
-                def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
-                    if self.rng.random() < epsilon:
-                        return self.explore(mask)
-                    return int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
-                decision = self.shield.decide(env.sim.snapshot, env.cav_ids(), choose)
+                q = q_values(self.agent.online, graph, weights)
+                decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (
+                    self.explore(mask) if self.rng.random() < epsilon else None))
             actions, masks = self.decision_arrays(graph, decision)
-            _, reward, terminated, truncated, _ = env.step(np.where(actions >= 0, actions, keep))
-            scaled = reward * self.training.reward_scale
-            emitted = accumulator.add(DecisionRecord(graph, actions, masks, scaled))
+            _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, keep))
+            own, shared = info['reward_vector']
+            emitted = accumulator.add(DecisionRecord(graph, actions, masks, own, shared))
             if terminated or truncated:
                 emitted += accumulator.finish(self.final_record(), terminated)
-            if demonstrate:
-                transitions += emitted
-            else:
-                for transition in emitted:
-                    self.replay.add(transition)
-                self.state.decisions += 1
-                losses += self.train_steps(self.training.updates_per_decision)
+            transitions += emitted
+            if on_decision is not None:
+                on_decision(emitted)
             if terminated or truncated:
-                break
-        self.last_losses = losses
-        return transitions
+                return transitions
 
     def decision_arrays(self, graph, decision) -> tuple[np.ndarray, np.ndarray]:
         n = graph.num_nodes
@@ -161,6 +195,8 @@ class Trainer:
     # --- learning ---------------------------------------------------------------------------
 
     def sample(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """A batch from the agent's replay and the demonstrations, each transition scored
+        under mode weights (the run's mode, or drawn per transition when conditioned)."""
         t = self.training
         demo_count = 0
         if len(self.demos):
@@ -174,6 +210,14 @@ class Trainer:
             parts.append(self.demos.sample(self.rng.integers(len(self.demos), size=demo_count)))
             is_demo.append(np.ones(demo_count, bool))
         batch = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        size = len(batch['discounts'])
+        if self.conditioned:
+            weights = self.sampler.sample(size)
+            batch['weights'] = weights.astype(np.float32)
+        else:
+            weights = np.tile(weight_input(self.config.mode(self.mode)), (size, 1))
+        batch['rewards'] = scored_rewards(batch, weights, t.credit) * np.float32(t.reward_scale)
+        del batch['returns'], batch['global_returns']
         return batch, np.concatenate(is_demo)
 
     def train_steps(self, count: int) -> list[dict[str, float]]:
@@ -201,6 +245,7 @@ class Trainer:
         c = self.config
         return {
             'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed,
+            'conditioned': self.conditioned, 'modes': self.validation_modes,
             'reward_variant': c.env.reward_variant, 'feature_set': c.graph.feature_set,
             'num_nodes': c.graph.max_vehicles, 'num_features': self.shape.num_features,
             'decision_interval': c.env.decision_interval, 'action_grid': c.env.actions.model_dump(),
@@ -209,26 +254,25 @@ class Trainer:
             'training': c.training.model_dump(),
         }
 
-    def validate(self) -> dict[str, float]:
-        v = self.training.validation
-        policy = GraphPolicy(self.out_dir / 'policy.pt', self.agent.online, self.metadata())
-        result = evaluate(self.env, PolicyController(policy, self.shield),
-                          [VALIDATION_SEED + i for i in range(v.episodes)], progress=False)
-        self.agent.online.train()
-        mean = {key: float(np.nanmean([e[key] for e in result.episodes])) for key in result.episodes[0]
-                if key != 'seed'}
-        mean['score'] = mean['p_CAV'] - v.collision_weight * mean['p_collision_CAV']
-        return mean
+    def validation_seeds(self) -> list[int]:
+        return [VALIDATION_SEED + i for i in range(self.training.validation.episodes)]
 
-    def validate_and_keep(self) -> None:
-        """Validate; keep the policy if it is the best so far; save the resumable state."""
-        result = self.validate()
-        result['episode'] = self.state.episode
-        append_row(self.out_dir / 'validation.csv', result)
-        if result['score'] > self.state.best_score:
-            self.state.best_score = result['score']
-            save_policy(self.out_dir / 'policy.pt', self.agent.online, {**self.metadata(), 'validation': result})
-        self.save_state()
+    def save_candidate(self) -> Path:
+        path = self.out_dir / 'candidates' / f'episode_{self.state.episode:05d}.pt'
+        save_policy(path, self.agent.online, self.metadata())
+        self.agent.online.train()
+        return path
+
+    def record_validation(self, path: Path, per_mode: dict[str, dict[str, float]]) -> None:
+        """Log a candidate's validation; keep it as policy.pt if it is the best so far."""
+        v = self.training.validation
+        score = selection_score(per_mode, v.min_exit_rate, v.max_cav_collision_rate)
+        episode = int(path.stem.split('_')[1])
+        for mode, row in per_mode.items():
+            append_row(self.out_dir / 'validation.csv', {'episode': episode, 'mode': mode, **row, 'score': score})
+        if score > self.state.best_score:
+            self.state.best_score = score
+            shutil.copyfile(path, self.out_dir / 'policy.pt')
 
     def save_state(self) -> None:
         torch.save({'online': self.agent.online.state_dict(), 'target': self.agent.target.state_dict(),
@@ -259,34 +303,88 @@ class Trainer:
              'config': self.config.model_dump()}, indent=2))
         demo = self.training.demonstrations
         for i in tqdm(range(demo.episodes), desc='demonstrations', unit='ep', disable=not progress, leave=False):
-            for transition in self.run_episode(DEMONSTRATION_SEED + i, demonstrate=True, epsilon=0.0):
+            for transition in self.collect_episode(DEMONSTRATION_SEED + i, demonstrate=True, epsilon=0.0):
                 self.demos.add(transition)
         if resume is not None:
             self.load_state(resume)
         elif len(self.demos):
             self.pretrain()
         self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
-        if self.state.episode == 0:
-            self.validate_and_keep()   # the pre-trained policy is a candidate too
-        bar = tqdm(total=episodes, initial=self.state.episode, desc=f'train {self.algorithm}/{self.mode}',
-                   unit='ep', disable=not progress)
-        while self.state.episode < episodes:
-            epsilon = self.epsilon()
-            self.run_episode(self.seed * EPISODE_SEED_STRIDE + self.state.episode, demonstrate=False,
-                             epsilon=epsilon)
-            metrics = self.env.episode_log.metrics()
-            losses = self.last_losses
-            row = {'episode': self.state.episode, 'epsilon': epsilon, 'margin_weight': self.margin_weight(),
-                   'loss': float(np.mean([x['loss'] for x in losses])) if losses else float('nan'),
-                   'td_loss': float(np.mean([x['td_loss'] for x in losses])) if losses else float('nan'),
-                   'decisions': self.state.decisions, 'updates': self.state.updates, **metrics}
-            append_row(self.out_dir / 'training.csv', row)
-            self.state.episode += 1
-            bar.update(1)
-            bar.set_postfix(reward=f'{metrics["reward"]:.0f}', p_CAV=f'{metrics["p_CAV"]:.2f}',
-                            col=f'{metrics["p_collision_CAV"]:.2f}')
-            if self.state.episode % self.training.validation.every_episodes == 0 or self.state.episode == episodes:
-                self.validate_and_keep()
-        bar.close()
+        task = ValidationTask(self.config, self.validation_modes, self.validation_seeds())
+        with Validator(task, self.training.validation.parallel, self.env) as validator:
+            if self.state.episode == 0:
+                validator.submit(self.save_candidate())   # the pre-trained policy is a candidate too
+            bar = tqdm(total=episodes, initial=self.state.episode, desc=f'train {self.algorithm}/{self.mode}',
+                       unit='ep', disable=not progress)
+            while self.state.episode < episodes:
+                metrics = self.train_episode()
+                bar.update(1)
+                bar.set_postfix(p_CAV=f'{metrics["p_CAV"]:.2f}', col=f'{metrics["p_collision_CAV"]:.2f}',
+                                best=f'{self.state.best_score:.3g}')
+                for path, per_mode in validator.finished():
+                    self.record_validation(path, per_mode)
+                if self.state.episode % self.training.validation.every_episodes == 0 or self.state.episode == episodes:
+                    validator.submit(self.save_candidate())
+                    self.save_state()
+            bar.close()
+            for path, per_mode in validator.finished(wait=True):
+                self.record_validation(path, per_mode)
+        self.save_state()
         self.env.close()
         return self.out_dir / 'policy.pt'
+
+    def train_episode(self) -> dict[str, float]:
+        """One training episode with learning after every decision; one row of training.csv
+        (returned)."""
+        epsilon = self.epsilon()
+        losses: list[dict[str, float]] = []
+
+        def learn(transitions: list) -> None:
+            for transition in transitions:
+                self.replay.add(transition)
+            self.state.decisions += 1
+            losses.extend(self.train_steps(self.training.updates_per_decision))
+        self.collect_episode(self.seed * EPISODE_SEED_STRIDE + self.state.episode, demonstrate=False,
+                             epsilon=epsilon, on_decision=learn)
+        metrics = self.env.episode_log.metrics()
+        row = {'episode': self.state.episode, 'epsilon': epsilon, 'margin_weight': self.margin_weight(),
+               'loss': float(np.mean([x['loss'] for x in losses])) if losses else float('nan'),
+               'td_loss': float(np.mean([x['td_loss'] for x in losses])) if losses else float('nan'),
+               'decisions': self.state.decisions, 'updates': self.state.updates, **metrics}
+        append_row(self.out_dir / 'training.csv', row)
+        self.state.episode += 1
+        return row
+
+
+class Validator:
+    """Runs candidate validations in a second process (or inline), in submission order."""
+
+    def __init__(self, task: ValidationTask, parallel: bool, env: ExitDecisionEnv):
+        self.task, self.env = task, env   # env: the trainer's, for inline validation
+        self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) if parallel else None
+        self.pending: list[tuple[Path, Future | dict]] = []
+
+    def __enter__(self) -> Validator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+    def submit(self, path: Path) -> None:
+        if self.pool is None:
+            self.pending.append((path, validate_checkpoint(self.task, path, self.env)))
+        else:
+            self.pending.append((path, self.pool.submit(validate_checkpoint, self.task, path)))
+
+    def finished(self, wait: bool = False) -> list[tuple[Path, dict]]:
+        done = []
+        while self.pending:
+            path, result = self.pending[0]
+            if isinstance(result, Future):
+                if not (wait or result.done()):
+                    break
+                result = result.result()
+            done.append((path, result))
+            self.pending.pop(0)
+        return done

@@ -1,8 +1,15 @@
 """decision_node: the trained policy of the active mode drives every CAV.
 
-At start it loads one checkpoint per (algorithm, mode) for the modes of parameter ``modes``
-from ``policy_dir/<algorithm>_<mode>/policy.pt``; a missing, corrupt or incompatible file
-stops the node at start, naming the path. On each decision step it pairs the graph with the
+At start it loads, for each name of parameter ``algorithms``: ``<algorithm>_conditioned``
+is one mode-conditioned checkpoint (``policy_dir/<algorithm>_conditioned/policy.pt``) that
+serves every mode of the config and any ``reward_weights``; a plain ``<algorithm>`` is one
+checkpoint per mode of parameter ``modes`` (``policy_dir/<algorithm>_<mode>/policy.pt``). A
+missing, corrupt or incompatible file stops the node at start, naming the path.
+
+``mode`` and ``reward_weights`` (six numbers: result, efficiency, comfort and safety weights
+summing to 1, incentive and punishment summing to 1) are kept consistent: setting a mode sets
+its weights, setting weights sets the mode whose weights they are, or ``custom``. A
+conditioned policy takes the new weights at the next decision, with no reload. On each decision step it pairs the graph with the
 vehicle states of the same step (the shield needs gaps and lanes), runs the greedy policy
 under the same shield as training and evaluation, and publishes the commands stamped with
 mode, algorithm and policy file. ``mode`` and ``algorithm`` switch at runtime through the
@@ -14,6 +21,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -23,13 +31,15 @@ from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS
-from exit_decision.policy import PolicyController, load_policy
+from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
+from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, Diagnostics,
                                       declare_config, describe, run_node)
 from exit_decision.ros.conversions import MessageError, commands_to_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 
-ALGORITHMS = ('gqn', 'mdgqn')
+ALGORITHMS = ('gqn', 'mdgqn', 'mdgqn_conditioned')
+CUSTOM_MODE = 'custom'   # the mode reported for reward_weights that are no configured mode's
 PAIRING_WINDOW = 20   # steps of unpaired graphs / states kept while waiting for the other half
 
 
@@ -51,24 +61,37 @@ class DecisionNode(Node):
             'modes whose policies are loaded at start', read_only=True)).value)
         algorithms = list(p('algorithms', list(ALGORITHMS), describe(
             'algorithms whose policies are loaded at start', read_only=True)).value)
+        self.config = config
         self.grid = ActionGrid(config.env.actions)
         self.shield = Shield.of(config, self.grid, RoadGeometry.of(config.scenario.road))
-        self.controllers: dict[tuple[str, str], PolicyController] = {}
+        self.controllers: dict[tuple[str, str | None], PolicyController] = {}   # mode None: conditioned
         for algorithm in algorithms:
-            for mode in modes:
-                config.mode(mode)
-                policy = load_policy(policy_dir / f'{algorithm}_{mode}' / 'policy.pt')
+            conditioned = algorithm.endswith(CONDITIONED_SUFFIX)
+            for mode in [None] if conditioned else modes:
+                if mode is not None:
+                    config.mode(mode)
+                policy = load_policy(policy_dir / (algorithm if conditioned else f'{algorithm}_{mode}') / 'policy.pt')
                 policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set,
                                         config.env.decision_interval, self.grid)
-                self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield)
-        self.mode = p('mode', modes[0], describe('decision mode', constraints=' | '.join(modes))).value
+                if policy.conditioned != conditioned:
+                    raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
+                                      f'as algorithm {algorithm!r} needs')
+                weights = weight_input(config.mode(modes[0])) if conditioned else None
+                self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield, weights)
+        self.mode = p('mode', modes[0], describe(
+            'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE]))).value
+        self.reward_weights = list(p('reward_weights', list(weight_input(config.mode(self.mode))), describe(
+            'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
+            '(sum 1); a conditioned policy decides for any such point')).value)
         self.algorithm = p('algorithm', algorithms[-1], describe(
-            'gqn or mdgqn', constraints=' | '.join(algorithms))).value
-        if (self.algorithm, self.mode) not in self.controllers:
-            raise PolicyError(f'no policy loaded for algorithm={self.algorithm!r}, mode={self.mode!r}')
+            'gqn, mdgqn (per-mode policies) or mdgqn_conditioned', constraints=' | '.join(algorithms))).value
+        problem = self.problem({})
+        if problem:
+            raise PolicyError(problem)
         self.interval = config.env.decision_interval
         self.num_nodes = config.graph.max_vehicles
         self.num_features = len(FEATURE_SETS[config.graph.feature_set])
+        self.add_pre_set_parameters_callback(self.complete_parameters)
         self.add_on_set_parameters_callback(self.validate_parameters)
         self.add_post_set_parameters_callback(self.apply_parameters)
         self.graphs: dict[tuple[int, int], TrafficGraph] = {}
@@ -83,24 +106,72 @@ class DecisionNode(Node):
 
     # --- parameters -------------------------------------------------------------------------
 
+    def mode_of(self, weights) -> str:
+        """The configured mode with these weights, or ``custom``."""
+        for name, mode in self.config.modes.items():
+            if np.allclose(weight_input(mode), weights, atol=1e-9):
+                return name
+        return CUSTOM_MODE
+
+    def complete_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
+        """Keep mode and reward_weights consistent: setting one sets the other too."""
+        names = {p.name for p in parameters}
+        if 'mode' in names and 'reward_weights' not in names:
+            mode = next(p.value for p in parameters if p.name == 'mode')
+            if mode in self.config.modes:
+                parameters.append(Parameter('reward_weights', Parameter.Type.DOUBLE_ARRAY,
+                                            [float(x) for x in weight_input(self.config.mode(mode))]))
+        elif 'reward_weights' in names and 'mode' not in names:
+            weights = next(p.value for p in parameters if p.name == 'reward_weights')
+            if check_weight_input(weights) is None:
+                parameters.append(Parameter('mode', Parameter.Type.STRING, self.mode_of(weights)))
+        return parameters
+
+    def problem(self, changes: dict) -> str | None:
+        """Why the parameters with these changes cannot drive (None if they can)."""
+        chosen = {'mode': self.mode, 'algorithm': self.algorithm, 'reward_weights': self.reward_weights, **changes}
+        algorithm, mode = chosen['algorithm'], chosen['mode']
+        algorithms = sorted({a for a, _ in self.controllers})
+        if algorithm not in algorithms:
+            return f'unknown algorithm {algorithm!r}: no policy loaded for it; loaded algorithms: {", ".join(algorithms)}'
+        reason = check_weight_input(chosen['reward_weights'])
+        if reason:
+            return f'reward_weights {list(chosen["reward_weights"])}: {reason}'
+        if mode == CUSTOM_MODE and 'reward_weights' not in changes and 'mode' in changes:
+            return f'mode {CUSTOM_MODE!r} is set by setting reward_weights to a point that is no configured mode'
+        if (algorithm, None) in self.controllers:
+            if mode != CUSTOM_MODE and mode not in self.config.modes:
+                return f'unknown mode {mode!r}; known modes: {", ".join(self.config.modes)}'
+            return None
+        loaded = sorted(m for a, m in self.controllers if a == algorithm)
+        if mode not in loaded:
+            return (f'unknown mode {mode!r}: no policy loaded for it with algorithm {algorithm!r}; loaded modes: '
+                    f'{", ".join(loaded)}' + ('' if mode != CUSTOM_MODE else
+                                             ' (reward_weights off a mode need a conditioned algorithm)'))
+        return None
+
     def validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Refuse a mode or algorithm without a loaded policy (other parameters: not ours)."""
-        chosen = {'mode': self.mode, 'algorithm': self.algorithm}
-        chosen.update({p.name: p.value for p in parameters if p.name in chosen})
-        loaded = {'algorithm': sorted({a for a, _ in self.controllers}),
-                  'mode': sorted({m for _, m in self.controllers})}
-        for name, value in chosen.items():
-            if value not in loaded[name]:
-                return SetParametersResult(successful=False, reason=(
-                    f'unknown {name} {value!r}: no policy loaded for it; loaded {name}s: '
-                    f'{", ".join(loaded[name])}'))
-        return SetParametersResult(successful=True)
+        """Refuse a mode, algorithm or reward_weights the loaded policies cannot drive with."""
+        changes = {p.name: p.value for p in parameters if p.name in ('mode', 'algorithm', 'reward_weights')}
+        problem = self.problem(changes) if changes else None
+        return SetParametersResult(successful=problem is None, reason=problem or '')
 
     def apply_parameters(self, parameters: list[Parameter]) -> None:
         for parameter in parameters:
             if parameter.name in ('mode', 'algorithm'):
                 setattr(self, parameter.name, parameter.value)
-                self.get_logger().info(f'active policy now {self.algorithm}/{self.mode}')
+            elif parameter.name == 'reward_weights':
+                self.reward_weights = list(parameter.value)
+        if any(p.name in ('mode', 'algorithm', 'reward_weights') for p in parameters):
+            self.get_logger().info(f'active policy now {self.algorithm}/{self.mode} {self.reward_weights}')
+
+    def controller(self) -> PolicyController:
+        """The active policy; a conditioned one set to the current reward_weights."""
+        conditioned = self.controllers.get((self.algorithm, None))
+        if conditioned is not None:
+            conditioned.weights = np.asarray(self.reward_weights, dtype=float)
+            return conditioned
+        return self.controllers[(self.algorithm, self.mode)]
 
     # --- messages ---------------------------------------------------------------------------
 
@@ -131,7 +202,7 @@ class DecisionNode(Node):
         try:
             graph = graph_from_msg(graph_msg, expected_nodes=self.num_nodes, expected_features=self.num_features)
             vehicles = states_from_msg(states_msg)
-            controller = self.controllers[(self.algorithm, self.mode)]
+            controller = self.controller()
             decision = controller.decide(graph, vehicles)
         except (MessageError, KeyError) as error:   # KeyError: a CAV of the graph is not in the states
             self.diagnostics.count('rejected_graphs')

@@ -1,7 +1,8 @@
 """Offline replay: re-run a decision policy on the graphs and states recorded in a bag.
 
 For every recorded command array, the policy (the recorded one, another mode, or a given
-checkpoint) decides again on the graph and states of the same step, under the shield; the
+checkpoint; a conditioned one at the recorded or given mode's weights) decides again on the
+graph and states of the same step, under the shield; the
 report counts the CAV commands that match the recorded ones and lists where they differ.
 """
 from __future__ import annotations
@@ -14,7 +15,8 @@ import numpy as np
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
-from exit_decision.policy import PolicyController, load_policy
+from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
+from exit_decision.reward import weight_input
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import commands_from_msg, graph_from_msg, states_from_msg
@@ -56,10 +58,16 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         if key not in graphs or key not in states:
             report.missing_inputs += 1
             continue
-        path = policy_file or policy_dir / f'{algorithm or msg.algorithm}_{mode or msg.mode}' / 'policy.pt'
+        name, mode_name = algorithm or msg.algorithm, mode or msg.mode
+        conditioned = name.endswith(CONDITIONED_SUFFIX)
+        path = policy_file or policy_dir / (name if conditioned else f'{name}_{mode_name}') / 'policy.pt'
         if path not in controllers:
-            controllers[path] = PolicyController(load_policy(path), shield)
-        decision = controllers[path].decide(graph_from_msg(graphs[key]), states_from_msg(states[key]))
+            policy = load_policy(path)
+            controllers[path] = PolicyController(policy, shield, np.zeros(6) if policy.conditioned else None)
+        controller = controllers[path]
+        if controller.policy.conditioned:
+            controller.weights = weight_input(config.mode(mode_name))
+        decision = controller.decide(graph_from_msg(graphs[key]), states_from_msg(states[key]))
         report.decisions += 1
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1

@@ -9,7 +9,11 @@ Human drivers are SUMO's (IDM + LC2013) plus two rules of ours from SPEC section
 opportunistic right changes, and exits chosen by the lane held at a diverge. CAVs driven
 by the policy have SUMO's safety checks switched off (speed mode 0, lane-change mode 0), so
 a bad command really collides; ``cav_driver='sumo'`` lets SUMO drive them to Exit_1 instead
-(the rule-based reference).
+(the rule-based reference). A policy CAV whose exit is decided against its task (it committed
+to Exit_0, or passed Exit_1's diverge outside lane 0) is *released*: SUMO's own driver takes it
+to the end of its route with SUMO's safety checks on, it reports ``controlled=False`` and takes
+no more commands (it counts as a miss). Without this a CAV that missed the exit could stand at
+the road's end until the step cap, in states no policy was trained on.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ import sumolib
 
 from exit_decision.config import ScenarioConfig
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.scenario.sumo_inputs import DIVERGES, build_routes
+from exit_decision.scenario.sumo_inputs import DIVERGES, TASK_EXIT, build_routes
 from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, Arrival, CavCommand,
                                    Collision, StepResult, TrafficSnapshot, VehicleState)
 
@@ -31,6 +35,7 @@ CavDriver = Literal['policy', 'sumo']
 
 #: SUMO's default lane-change mode (LC2013 does everything, respects others' gaps).
 SUMO_DEFAULT_LANE_CHANGE_MODE = 0b011001010101
+SUMO_DEFAULT_SPEED_MODE = 31       # every safety check on
 SIGNAL_BLINKER_RIGHT, SIGNAL_BLINKER_LEFT = 1, 2
 
 
@@ -97,6 +102,7 @@ class HighwaySimulation:
         self._held_acceleration: dict[str, float] = {}
         self._intention: dict[str, int] = {}
         self._committed: dict[str, str] = {}   # vehicle -> highway edge whose diverge it committed to
+        self._released: set[str] = set()       # policy CAVs handed to SUMO's driver after a missed exit
         self._braking: set[str] = set()
         self._inserted = 0
         self._drawn = 0
@@ -206,10 +212,22 @@ class HighwaySimulation:
             if vehicle.vehicle_class == 'HV2' and vehicle.edge_id != 'Highway_1':
                 continue
             self._committed[vehicle.vehicle_id] = vehicle.edge_id
-            if vehicle.lane_index == 0:
-                ramp = DIVERGES[vehicle.edge_id]
+            ramp = DIVERGES[vehicle.edge_id]
+            takes_ramp = vehicle.lane_index == 0
+            if takes_ramp:
                 self._sumo.vehicle.setRoute(vehicle.vehicle_id, [vehicle.edge_id, ramp])
                 self._route_target[vehicle.vehicle_id] = ramp
+            if vehicle.controlled and takes_ramp != (ramp == TASK_EXIT):
+                self._release(vehicle.vehicle_id)
+
+    def _release(self, vehicle_id: str) -> None:
+        """Hand a policy CAV that missed its exit to SUMO's driver for the rest of its trip."""
+        vehicle_api = self._sumo.vehicle
+        vehicle_api.setSpeedMode(vehicle_id, SUMO_DEFAULT_SPEED_MODE)
+        vehicle_api.setLaneChangeMode(vehicle_id, SUMO_DEFAULT_LANE_CHANGE_MODE)
+        vehicle_api.setSpeed(vehicle_id, -1.0)
+        self._released.add(vehicle_id)
+        self._intention[vehicle_id] = INTENTION_KEEP
 
     def _insert_vehicles(self) -> None:
         """Per class, a Bernoulli draw per step with the paper's per-0.1 s probability."""
@@ -272,7 +290,8 @@ class HighwaySimulation:
                        and before.lane_index != info.lane_index)
             if changed:
                 lane_changers.append(vehicle_id)
-            if name == 'CAV' and self.cav_driver == 'policy':
+            controlled = name == 'CAV' and self.cav_driver == 'policy' and vehicle_id not in self._released
+            if controlled:
                 intention = self._intention[vehicle_id]
             elif changed:
                 intention = INTENTION_LEFT if info.lane_index > before.lane_index else INTENTION_RIGHT
@@ -293,13 +312,14 @@ class HighwaySimulation:
                 lateral_offset=values[lateral], speed=values[speed], acceleration=acceleration,
                 length=self.scenario.vehicle_types[name].length, lane_speed_limit=info.speed_limit,
                 intention=intention, route_target=self._route_target[vehicle_id],
-                controlled=name == 'CAV' and self.cav_driver == 'policy'))
+                controlled=controlled))
         self._snapshot = TrafficSnapshot(vehicles)
         total = self.scenario.total_vehicles
         return StepResult(
             step=self._step, time=self._step * self.scenario.step_length, vehicles=vehicles,
             arrivals=arrivals, collisions=collisions, braking_starts=braking_starts,
             lane_changers=lane_changers, inserted=self._inserted, waiting=self._drawn - self._inserted,
+            released=frozenset(self._released),
             terminated=self._inserted == total and not vehicles and sim.getMinExpectedNumber() == 0,
             truncated=self._step >= self.scenario.max_steps)
 

@@ -25,6 +25,8 @@ HIGHWAY_EDGES = ('Highway_0', 'Highway_1', 'Highway_2')
 EXIT_EDGES = ('Exit_0', 'Exit_1')
 #: The ramp that leaves lane 0 at the end of each highway edge.
 DIVERGES = {'Highway_0': 'Exit_0', 'Highway_1': 'Exit_1'}
+#: The exit every CAV is sent to (and HV2 may take): the task of the decision problem.
+TASK_EXIT = 'Exit_1'
 #: Route ids in the routes file, by the edge a vehicle leaves the road by.
 ROUTES = {'Highway_2': ('Highway_0', 'Highway_1', 'Highway_2'),
           'Exit_0': ('Highway_0', 'Exit_0'),

@@ -1,0 +1,78 @@
+"""Validation of training checkpoints against the teacher, on the same validation seeds.
+
+A candidate runs greedily on the validation seeds in every validation mode (a conditioned
+policy at each mode's weights; a per-mode policy once, scored under its mode). Each mode's
+row holds its safety figures and the mean paired return gain over the neutral rule-based
+teacher on the same seeds (the teacher's runs are made once per process and scored under
+every mode from their reward vectors). ``selection_score`` turns the rows into the number
+the trainer keeps the best checkpoint by.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from exit_decision.config import ProjectConfig
+from exit_decision.evaluation.statistics import paired_interval
+
+INFEASIBLE = -1000.0   # score offset of a candidate outside the safety targets in some mode
+
+
+@dataclass(frozen=True)
+class ValidationTask:
+    config: ProjectConfig
+    modes: list[str]
+    seeds: list[int]
+
+
+_worker: dict = {}   # per process: the env and the teacher's episodes (libsumo: one simulation per process)
+
+
+def _env_and_teacher(task: ValidationTask, env=None):
+    from exit_decision.agents.rule_based import RuleBasedDriver
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import run_episodes
+
+    if env is None:
+        if 'env' not in _worker:
+            _worker['env'] = ExitDecisionEnv(task.config, mode=task.modes[0])
+        env = _worker['env']
+    key = tuple(task.seeds)
+    if _worker.get('teacher_seeds') != key:
+        _worker['teacher'] = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
+        _worker['teacher_seeds'] = key
+    return env, _worker['teacher']
+
+
+def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str, dict[str, float]]:
+    """Per validation mode: mean metrics of the candidate, its return and the teacher's, and
+    the paired gain with its 95% interval. ``env``: the caller's (inline validation; a
+    worker process makes its own)."""
+    from exit_decision.evaluation.evaluate import evaluate_policy, scored_episodes
+    from exit_decision.policy import load_policy
+
+    env, teacher = _env_and_teacher(task, env)
+    max_steps = task.config.scenario.max_steps
+    out = {}
+    for run, mode in zip(evaluate_policy(env, load_policy(path), task.modes, task.seeds), task.modes):
+        theirs = scored_episodes(teacher, env.reward_fn.weights(task.config.mode(mode)))
+        own = np.array([e['reward'] for e in run.episodes])
+        gain, low, high = paired_interval(own - np.array([e['reward'] for e in theirs]))
+        out[mode] = {
+            **{k: float(np.nanmean([e[k] for e in run.episodes])) for k in ('p_CAV', 'p_collision_CAV', 'v_AVs', 'N_braking')},
+            'capped': float(sum(e['steps'] >= max_steps for e in run.episodes)),
+            'return': float(own.mean()), 'teacher_return': float(np.mean([e['reward'] for e in theirs])),
+            'gain': gain, 'gain_low': low, 'gain_high': high}
+    return out
+
+
+def selection_score(per_mode: dict[str, dict[str, float]], min_exit_rate: float, max_cav_collision_rate: float) -> float:
+    """The smallest mean gain over the teacher across the modes when every mode meets the
+    safety targets (exit rate, CAV collision rate, no capped episode); otherwise far below
+    any feasible score, ranked by the worst shortfall."""
+    shortfall = max(max(min_exit_rate - row['p_CAV'], row['p_collision_CAV'] - max_cav_collision_rate,
+                        row['capped']) for row in per_mode.values())
+    gain = min(row['gain'] for row in per_mode.values())
+    return gain if shortfall <= 0 else INFEASIBLE - shortfall
