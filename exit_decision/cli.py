@@ -89,7 +89,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     modes = args.mode or list(config.training.conditioning.validation_modes)
+    sanity_drivers = {}
+    if any(':' in driver for driver in args.driver):
+        from exit_decision.experiments.reward_sanity import load_sweep
+        sanity_drivers, _ = load_sweep((args.config_dir or default_config_dir()) / 'reward_sanity.yaml', config)
+        for driver in args.driver:
+            if driver.partition(':')[2] and driver.partition(':')[2] not in sanity_drivers:
+                raise ConfigError(f'--driver {driver}: no such driver in reward_sanity.yaml; known: '
+                                  f'{", ".join(sanity_drivers)}')
     table = evaluate_runs(config, policies=args.policy, drivers=args.driver, modes=modes, episodes=args.episodes,
+                          sanity_drivers=sanity_drivers,
                           seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
     print(table)
     return 0
@@ -97,7 +106,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_ablation(args: argparse.Namespace) -> int:
     """Train and evaluate each step of config/ablation.yaml; print the table."""
-    from exit_decision.learning.ablation import markdown, run_ablation
+    from exit_decision.experiments.ablation import markdown, run_ablation
 
     table = run_ablation(args.out, args.algorithm, args.mode, args.episodes, args.test_episodes, args.seed,
                          args.test_seed, args.only, args.config_dir)
@@ -126,12 +135,21 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tradeoff(args: argparse.Namespace) -> int:
+    """A conditioned policy at every weight point: speed against hard braking and safety."""
+    from exit_decision.experiments.tradeoff import run_tradeoff
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    print(run_tradeoff(config, args.policy, list(range(args.seed, args.seed + args.episodes)), args.out))
+    return 0
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     """Write the results page from evaluation, ablation and figures."""
     from exit_decision.evaluation.report import results_page
 
-    print(results_page(args.evaluation, args.ablation, args.figures, args.out,
-                       max_steps=load_project().scenario.max_steps))
+    print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
+                       max_steps=load_project(args.config_dir).scenario.max_steps))
     return 0
 
 
@@ -197,6 +215,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def reference_driver(text: str) -> str:
+    """``sumo``, ``rule_based`` or ``rule_based:<name>`` (the name is checked against the sweep later)."""
+    name, colon, variant = text.partition(':')
+    if name == 'sumo' and not colon or name == 'rule_based' and (not colon or variant):
+        return text
+    raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<driver of reward_sanity.yaml>')
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='exit-decision', description=__doc__)
     commands = parser.add_subparsers(dest='command', required=True)
@@ -231,9 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
     _common(evaluate)
     evaluate.add_argument('--policy', type=Path, action='append', default=[], help='a policy.pt (repeatable)')
-    evaluate.add_argument('--driver', action='append', default=[], choices=['sumo', 'rule_based'],
-                          help='a reference driver (repeatable): sumo (SUMO\'s own drivers) or rule_based '
-                               '(the neutral teacher, env.yaml\'s rule_based)')
+    evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
+                          help='a reference driver (repeatable): sumo (SUMO\'s own drivers), rule_based '
+                               '(the neutral teacher, env.yaml\'s rule_based) or rule_based:<name> (a driver '
+                               'of config/reward_sanity.yaml)')
     evaluate.add_argument('--mode', action='append', default=[],
                           help='score (and run a conditioned policy) under this mode (repeatable; default: '
                                'training.yaml conditioning.validation_modes); one CSV per run and mode')
@@ -249,7 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument('--mode', default='AGGP', help='decision mode at start')
     stack.add_argument('--switch-to', default='CONP', help='mode to switch to mid-run ("" = no switch)')
     stack.add_argument('--switch-at', type=int, default=300, help='step of the first episode to switch at')
-    stack.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
+    stack.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default='mdgqn_conditioned',
+                       help='mdgqn_conditioned: one network for every mode (the mode switches its weights)')
     stack.add_argument('--episodes', type=int, default=1)
     stack.add_argument('--seed', type=int, default=10_000)
     stack.add_argument('--bag', type=Path, default=None, help='bag directory (default bags/exit_decision_<time>)')
@@ -260,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(replay)
     replay.add_argument('bag', type=Path)
     replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
-    replay.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default=None)
+    replay.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default=None)
     replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
     replay.add_argument('--policy-dir', type=Path, default=None)
     replay.set_defaults(func=cmd_replay)
@@ -290,6 +318,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help='no simulation: search row-scale multipliers on --out\'s episodes.csv')
     sanity.set_defaults(func=cmd_reward_sanity)
 
+    tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
+    _common(tradeoff)
+    tradeoff.add_argument('--policy', type=Path, default=Path('policies/mdgqn_conditioned/policy.pt'))
+    tradeoff.add_argument('--episodes', type=int, default=20, help='seeds per weight point')
+    tradeoff.add_argument('--seed', type=int, default=40_000, help='first seed (not a test or training seed)')
+    tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'))
+    tradeoff.set_defaults(func=cmd_tradeoff)
+
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
     plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')
     plot.add_argument('--evaluation', type=Path, default=None, help='an evaluate --out directory')
@@ -298,7 +334,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     report = commands.add_parser('report', help='write docs/results.md from the generated results')
     report.add_argument('--evaluation', type=Path, default=Path('docs/results/evaluation'))
-    report.add_argument('--ablation', type=Path, default=Path('docs/results/ablation/ablation.csv'))
+    report.add_argument('--config-dir', type=Path, default=None)
+    report.add_argument('--runs', type=Path, nargs='*', default=[Path('policies/mdgqn_conditioned')],
+                        help='training run directories (validation history, wall time)')
+    report.add_argument('--sanity', type=Path, default=Path('docs/results/reward_sanity'))
+    report.add_argument('--tradeoff', type=Path, default=Path('docs/results/tradeoff'))
     report.add_argument('--figures', type=Path, default=Path('docs/figures'))
     report.add_argument('--out', type=Path, default=Path('docs/results.md'))
     report.set_defaults(func=cmd_report)

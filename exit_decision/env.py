@@ -22,7 +22,7 @@ from gymnasium import spaces
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
-from exit_decision.evaluation.metrics import EpisodeLog
+from exit_decision.episode_log import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
 from exit_decision.reward import RewardVector, StepRewardInputs, make_reward, scalar
 from exit_decision.scenario.simulation import Backend, CavDriver, HighwaySimulation
@@ -80,10 +80,6 @@ class ExitDecisionEnv(gym.Env):
             self.step_inputs.clear()
         return self._observation(), {'seed': episode_seed}
 
-    def cav_ids(self) -> list[str]:
-        """Vehicle ids of the CAV rows of the current graph, in row order."""
-        return [self.graph.vehicle_ids[row] for row in self.graph.cav_rows()]
-
     def commands(self, action: np.ndarray) -> dict:
         """The commands of an action vector (one entry per graph row; CAV rows are used)."""
         action = np.asarray(action)
@@ -110,7 +106,7 @@ class ExitDecisionEnv(gym.Env):
     def step(self, action):
         commands = self.commands(action)
         graph = self.graph
-        acting = {graph.vehicle_ids[row]: row for row in graph.cav_rows()}
+        acting = {vehicle_id: row for vehicle_id, row in graph.row_of().items() if graph.cav_mask[row]}
         per_row = np.zeros((graph.num_nodes, 4, 2))
         shared = np.zeros((4, 2))
         results = []

@@ -58,6 +58,14 @@ class TrafficGraph:
     def cav_rows(self) -> np.ndarray:
         return np.flatnonzero(self.cav_mask)
 
+    def row_of(self) -> dict[str, int]:
+        """Vehicle id -> its row (the slot it holds)."""
+        return {vehicle_id: row for row, vehicle_id in enumerate(self.vehicle_ids) if vehicle_id}
+
+    def cav_ids(self) -> list[str]:
+        """Vehicle ids of the CAV rows, in row order."""
+        return [self.vehicle_ids[row] for row in self.cav_rows()]
+
 
 class GraphBuilder:
     """Stateful (slot assignment) builder of ``TrafficGraph`` from vehicle states."""

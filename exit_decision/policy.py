@@ -113,14 +113,14 @@ def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapsh
     """Each CAV row's best allowed action by its Q values, under the shield (front to back);
     ``explore``: called with the mask for a CAV that explores instead (returns an action or
     None to stay greedy)."""
-    row_of = {vehicle_id: row for row, vehicle_id in enumerate(graph.vehicle_ids) if vehicle_id}
+    row_of = graph.row_of()
 
     def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
         chosen = explore(mask) if explore is not None else None
         if chosen is not None:
             return chosen
         return int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
-    return shield.decide(snapshot, [graph.vehicle_ids[row] for row in graph.cav_rows()], choose,
+    return shield.decide(snapshot, graph.cav_ids(), choose,
                          preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))
 
 

@@ -14,7 +14,7 @@ from launch_ros.actions import Node
 def generate_launch_description():
     arguments = {
         'mode': ('AGGI', 'decision mode at start'),
-        'algorithm': ('mdgqn', 'gqn or mdgqn'),
+        'algorithm': ('mdgqn_conditioned', 'mdgqn_conditioned (one network, every mode), gqn or mdgqn'),
         'episodes': ('1', 'episodes the bridge runs, 0 = until stopped'),
         'seed': ('10000', 'seed of the first episode'),
         'timing': ('synchronous', 'synchronous or realtime'),

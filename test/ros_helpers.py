@@ -27,13 +27,16 @@ def small_config_dir(target: Path) -> Path:
 
 
 def random_policies(config_dir: Path, target: Path, modes=('AGGI', 'AGGP', 'CONI', 'CONP')) -> Path:
-    """Small untrained policies for every (algorithm, mode): the wiring, not the driving, is tested."""
+    """Small untrained policies for every (algorithm, mode) and a conditioned one: the wiring,
+    not the driving, is tested."""
     config = load_project(config_dir)
     grid = ActionGrid(config.env.actions)
-    for index, (algorithm, mode) in enumerate((a, m) for a in ('gqn', 'mdgqn') for m in modes):
+    runs = [(a, m, f'{a}_{m}') for a in ('gqn', 'mdgqn') for m in modes] + [('mdgqn', 'conditioned', 'mdgqn_conditioned')]
+    for index, (algorithm, mode, name) in enumerate(runs):
         torch.manual_seed(index)
-        network = GraphQNetwork(NetworkShape(len(FEATURE_SETS[config.graph.feature_set]), grid.size, 8, 8, 8))
-        save_policy(target / f'{algorithm}_{mode}' / 'policy.pt', network, {
+        network = GraphQNetwork(NetworkShape(len(FEATURE_SETS[config.graph.feature_set]), grid.size, 8, 8, 8,
+                                             num_weights=6 if mode == 'conditioned' else 0))
+        save_policy(target / name / 'policy.pt', network, {
             'algorithm': algorithm, 'mode': mode, 'num_nodes': config.graph.max_vehicles,
             'feature_set': config.graph.feature_set, 'decision_interval': config.env.decision_interval,
             'action_grid': config.env.actions.model_dump()})

@@ -3,7 +3,8 @@ import math
 
 import pytest
 
-from exit_decision.evaluation.metrics import EpisodeLog, markdown_table, summarize
+from exit_decision.episode_log import EpisodeLog
+from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.traffic import Arrival, Collision, StepResult
 
 from conftest import make_vehicle

@@ -1,47 +1,37 @@
 """The results page's target and ordering checks on hand-made numbers."""
-import json
-
-from exit_decision.config import load_project
-from exit_decision.evaluation.report import demonstrator_headway, step_cap_lines, target_checks
+from exit_decision.evaluation.report import speed_orderings, step_cap_lines, target_checks
+from exit_decision.tables import write_rows
 
 
-def runs(**values):
-    table = {}
-    for run, (v, p_cav, collisions) in values.items():
-        table[run] = {'v_AVs': (v, 0.0), 'p_CAV': (p_cav, 0.0), 'p_collision_CAV': (collisions, 0.0)}
-    return table
+def row(run, mode, reward, d_reward, low, high, p_cav=1.0, collisions=0.0, capped=0):
+    return {'run': run, 'mode': mode, 'reward': reward, 'd_reward': d_reward, 'd_reward_low': low,
+            'd_reward_high': high, 'p_CAV': p_cav, 'p_collision_CAV': collisions, 'capped': capped}
 
 
-def test_targets_and_orderings_are_checked_on_the_numbers():
-    lines = target_checks(runs(
-        mdgqn_AGGI=(17.0, 0.97, 0.0), mdgqn_AGGP=(16.5, 0.96, 0.005),
-        mdgqn_CONI=(16.0, 0.93, 0.0), mdgqn_CONP=(16.8, 0.99, 0.02),
-        gqn_AGGI=(16.0, 0.90, 0.0), sumo=(15.7, 1.0, 0.0)))
-    text = '\n'.join(lines)
-    assert 'MDGQN AGGI: p_collision_CAV 0.0000 (target <= 0.01), p_CAV 0.970 (target >= 0.95): met' in text
-    assert 'MDGQN CONI: p_collision_CAV 0.0000 (target <= 0.01), p_CAV 0.930 (target >= 0.95): NOT met' in text
-    assert 'short by 0.0000 collisions, 0.020 p_CAV' in text
-    assert 'MDGQN: AGGI faster than CONI (17.00 vs 16.00 m/s): holds' in text
-    assert 'MDGQN: AGGP faster than CONP (16.50 vs 16.80 m/s): does not hold' in text
-    assert 'AGGI: MDGQN at least as good as GQN' in text and 'holds' in text
-    assert 'faster than the SUMO reference (15.70 m/s) at p_collision_CAV <= 0.01: holds (mdgqn_AGGI, mdgqn_AGGP, gqn_AGGI)' in text
+def test_targets_are_checked_against_the_teacher_on_the_numbers():
+    comparison = [row('mdgqn_conditioned', 'AGGI', 19.0, 0.2, 0.1, 0.3),
+                  row('mdgqn_conditioned', 'CONP', 13.0, 0.05, -0.02, 0.12, p_cav=0.985),
+                  row('rule_based_headway_0.8', 'AGGI', 19.3, 0.5, 0.4, 0.6),
+                  row('mdgqn_AGGI', 'AGGI', 19.2, 0.4, 0.3, 0.5)]
+    text = '\n'.join(target_checks(comparison))
+    assert '- AGGI: Exit-1 1.000 (>= 0.99), CAV collisions 0.0000 (<= 0.0067), 0 capped: met; ' \
+           'return − teacher +0.200 [+0.100, +0.300]: beats the teacher' in text
+    assert '- CONP: Exit-1 0.985 (>= 0.99)' in text and 'NOT met' in text and 'does NOT beat the teacher' in text
+    assert 'best sanity-sweep driver under AGGI on these seeds (rule_based_headway_0.8): return 19.000 vs 19.300' in text
+    assert 'per-mode network mdgqn_AGGI: return 19.000 vs 19.200 (-0.200, -1.0% of its magnitude' in text
 
 
-def test_a_policy_line_names_the_demonstrator_its_mode_learned_from(tmp_path):
-    config = load_project(overrides=[{'env': {'rule_based': {'time_headway': 1.2}},
-                                      'modes': {'modes': {'AGGI': {'rule_based': {'time_headway': 1.0}},
-                                                          'CONP': {'rule_based': {}}}}}]).model_dump(mode='json')
-    for mode, expected in (('AGGI', '1'), ('CONP', '1.2')):
-        path = tmp_path / f'{mode}.json'
-        path.write_text(json.dumps({'mode': mode, 'config': config}))
-        assert demonstrator_headway(path) == f'; demonstrator headway {expected} s'
-    assert demonstrator_headway(tmp_path / 'missing.json') == ''
+def test_speed_orderings_are_paired_over_seeds(tmp_path):
+    write_rows(tmp_path / 'run_AGGI.csv', [{'seed': s, 'v_AVs': 16.0 + 0.01 * s} for s in range(10)])
+    write_rows(tmp_path / 'run_CONI.csv', [{'seed': s, 'v_AVs': 15.5 + 0.01 * s + 0.02 * (s % 2)} for s in range(10)])
+    (line,) = speed_orderings(tmp_path, 'run', pairs=(('AGGI', 'CONI'),))
+    assert line.startswith('- run: AGGI faster than CONI: v_AVs +0.490 m/s') and line.endswith('holds')
 
 
 def test_episodes_cut_by_the_step_cap_are_counted_per_run(tmp_path):
-    from exit_decision.tables import write_rows
-    write_rows(tmp_path / 'mdgqn_AGGI.csv', [{'steps': 1500.0}, {'steps': 800.0}, {'steps': 1500.0}])
-    write_rows(tmp_path / 'sumo.csv', [{'steps': 820.0}])
-    write_rows(tmp_path / 'mdgqn_AGGI_actions.csv', [{'steps': 1500.0}])
-    assert step_cap_lines(tmp_path, 1500) == ['- mdgqn_AGGI: 2 of 3 episodes ran into the 1500-step cap']
+    write_rows(tmp_path / 'mdgqn_conditioned_AGGI.csv', [{'steps': 1500.0}, {'steps': 800.0}, {'steps': 1500.0}])
+    write_rows(tmp_path / 'rule_based_AGGI.csv', [{'steps': 820.0}])
+    write_rows(tmp_path / 'mdgqn_conditioned_AGGI_actions.csv', [{'steps': 1500.0}])
+    write_rows(tmp_path / 'comparison.csv', [{'steps': 1500.0}])
+    assert step_cap_lines(tmp_path, 1500) == ['- mdgqn_conditioned_AGGI: 2 of 3 episodes ran into the 1500-step cap']
     assert step_cap_lines(tmp_path, 2000) == ['- none: no episode ran into the 2000-step cap']

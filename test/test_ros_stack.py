@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from exit_decision_msgs.msg import CavCommand, CavCommandArray, TrafficGraph as GraphMsg, VehicleStateArray
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.parameter import parameter_value_to_python
 
 from exit_decision.config import load_project
 from exit_decision.ros.bags import read_messages
@@ -79,6 +80,41 @@ def test_mode_parameter_refuses_unknown_values_with_a_reason(setup):
         assert set_parameter(test, 'decision_node', 'mode', 'CONI').successful
         refused = set_parameter(test, 'decision_node', 'algorithm', 'dqn')
         assert not refused.successful and "unknown algorithm 'dqn'" in refused.reason
+    finally:
+        test.close()
+        stop(process)
+
+
+def get_parameters(test: ProbeNode, node_name: str, names: list[str]) -> list:
+    """What `ros2 param get` shows: the node's get_parameters service."""
+    client = test.node.create_client(GetParameters, f'/{node_name}/get_parameters')
+    assert test.spin_until(client.service_is_ready, 30)
+    future = client.call_async(GetParameters.Request(names=names))
+    test.executor.spin_until_future_complete(future, timeout_sec=30)
+    return [parameter_value_to_python(v) for v in future.result().values]
+
+
+def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(setup):
+    process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
+                                           'algorithm': 'mdgqn_conditioned', 'mode': 'AGGI'},
+                         setup['root'] / 'decision_weights.log')
+    test = ProbeNode('weights_test')
+    try:
+        assert set_parameter(test, 'decision_node', 'mode', 'CONP').successful
+        mode, weights = get_parameters(test, 'decision_node', ['mode', 'reward_weights'])
+        assert mode == 'CONP' and list(weights) == pytest.approx([0.2, 0.2, 0.25, 0.35, 0.4, 0.6])
+        point = [0.3, 0.3, 0.2, 0.2, 0.5, 0.5]
+        assert set_parameter(test, 'decision_node', 'reward_weights', point).successful
+        mode, weights = get_parameters(test, 'decision_node', ['mode', 'reward_weights'])
+        assert mode == 'custom' and list(weights) == pytest.approx(point)
+        assert set_parameter(test, 'decision_node', 'reward_weights', [0.25, 0.35, 0.15, 0.25, 0.6, 0.4]).successful
+        assert get_parameters(test, 'decision_node', ['mode']) == ['AGGI'], 'the weights of a mode name it'
+        refused = set_parameter(test, 'decision_node', 'reward_weights', [0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
+        assert not refused.successful and 'must sum to 1' in refused.reason
+        refused = set_parameter(test, 'decision_node', 'algorithm', 'gqn')
+        assert refused.successful, 'per-mode gqn has a policy for AGGI'
+        refused = set_parameter(test, 'decision_node', 'reward_weights', point)
+        assert not refused.successful and 'conditioned' in refused.reason
     finally:
         test.close()
         stop(process)

@@ -155,7 +155,7 @@ class RuleBasedDriver:
 
     def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
         snapshot = TrafficSnapshot(vehicles)
-        cav_ids = [graph.vehicle_ids[row] for row in graph.cav_rows()]
+        cav_ids = graph.cav_ids()
         return self.shield.decide(
             snapshot, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
             preferred=lambda vehicle: self.grid.index(*self.preferred(vehicle, snapshot)))

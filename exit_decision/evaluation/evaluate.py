@@ -42,7 +42,7 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
         action = np.full(env.graph.num_nodes, keep)
         if controller is not None:
             decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
-            row_of = {vid: row for row, vid in enumerate(env.graph.vehicle_ids) if vid}
+            row_of = env.graph.row_of()
             for vehicle_id, index in decision.actions.items():
                 action[row_of[vehicle_id]] = index
                 result.action_counts[index] += 1

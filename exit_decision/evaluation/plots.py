@@ -6,6 +6,9 @@
 - ``test_reward.png`` (Fig. 6): test episode reward, mean with min and max, per policy.
 - ``speeds.png`` (Fig. 7): mean speed of CAVs and of all traffic per run.
 - ``actions_<run>.png`` (paper 001 Fig. 20): how often each action was chosen.
+- ``validation_<run>.png``: the learning curve judged against the teacher: per validation
+  mode, the candidate's mean paired return gain over the neutral rule-based teacher (the
+  teacher's level is the line at 0) and its Exit-1 rate against the target.
 """
 from __future__ import annotations
 
@@ -92,7 +95,35 @@ def reward_comparison(run_dirs: list[Path], out: Path) -> Path | None:
 
 def evaluation_runs(evaluation_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     return {path.stem: read_csv(path) for path in sorted(evaluation_dir.glob('*.csv'))
-            if path.stem != 'summary' and not path.stem.endswith('_actions')}
+            if path.stem not in ('summary', 'comparison') and not path.stem.endswith('_actions')}
+
+
+def validation_curves(run_dir: Path, out: Path, exit_target: float = 0.99) -> Path | None:
+    """Per validation mode: gain over the teacher (with its 95% interval) and Exit-1 rate."""
+    path = run_dir / 'validation.csv'
+    rows = read_rows(path) if path.exists() else []
+    if not rows or 'gain' not in rows[0]:
+        return None
+    fig, (gain_ax, exit_ax) = plt.subplots(1, 2, figsize=(10, 3.4))
+    for mode in dict.fromkeys(row['mode'] for row in rows):
+        own = [row for row in rows if row['mode'] == mode]
+        episodes = [int(row['episode']) for row in own]
+        gains = np.array([float(row['gain']) for row in own])
+        gain_ax.plot(episodes, gains, marker='o', label=mode)
+        gain_ax.fill_between(episodes, [float(row['gain_low']) for row in own],
+                             [float(row['gain_high']) for row in own], alpha=0.15)
+        exit_ax.plot(episodes, [float(row['p_CAV']) for row in own], marker='o', label=mode)
+    gain_ax.axhline(0.0, color='black', linestyle='--', label='teacher (neutral rule-based)')
+    gain_ax.set_ylabel('return − teacher (validation, paired)')
+    exit_ax.axhline(exit_target, color='red', linestyle=':', label=f'target {exit_target:g}')
+    exit_ax.axhline(1.0, color='black', linestyle='--', label='teacher')
+    exit_ax.set_ylabel('Exit-1 rate (validation)')
+    for ax in (gain_ax, exit_ax):
+        ax.set_xlabel('training episode (0 = after pre-training)')
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f'{run_dir.name}: validation against the teacher')
+    return save(fig, out / f'validation_{run_dir.name}.png')
 
 
 def test_reward(evaluation_dir: Path, out: Path) -> Path | None:
@@ -152,6 +183,7 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
 def make_all(run_dirs: list[Path], evaluation_dir: Path | None, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     made = [training_reward(run_dirs, out), reward_comparison(run_dirs, out)]
+    made += [validation_curves(run_dir, out) for run_dir in run_dirs]
     if evaluation_dir is not None:
         made += [test_reward(evaluation_dir, out), speeds(evaluation_dir, out)]
         made += action_distributions(evaluation_dir, out)

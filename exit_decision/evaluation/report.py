@@ -10,7 +10,7 @@ import numpy as np
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.rule_based import RuleBasedDriver
-from exit_decision.config import ProjectConfig
+from exit_decision.config import ProjectConfig, RuleBasedConfig
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
@@ -26,11 +26,13 @@ PAIRED_METRICS = ('reward', 'v_AVs', 'p_CAV', 'p_collision_CAV', 'N_braking')
 
 
 def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequence[str], modes: Sequence[str],
-                  episodes: int, seed: int, out_dir: Path, command: str) -> str:
+                  episodes: int, seed: int, out_dir: Path, command: str,
+                  sanity_drivers: dict[str, RuleBasedConfig] | None = None) -> str:
     """Evaluate each policy and reference driver on seeds seed..seed+episodes-1, scored under
     each named mode's reward.
 
-    A driver or per-mode policy drives once and is scored under every mode; a conditioned
+    Drivers: ``sumo``, ``rule_based`` (the neutral teacher) or ``rule_based:<name>`` (a driver of
+    the reward sanity sweep, ``sanity_drivers``). A driver or per-mode policy drives once and is scored under every mode; a conditioned
     policy drives at each mode's weights. Writes ``<run>_<mode>.csv`` (per episode; ``reward``
     = the episode's global scalar return under that mode, unscaled), ``<run>_<mode>_actions.csv``,
     ``summary.md`` / ``summary.csv`` (mean and std), and ``comparison.md`` / ``comparison.csv``
@@ -41,15 +43,18 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         config.mode(mode)
     runs: list[EvaluatedRun] = []
     for driver in drivers:
-        env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if driver == 'sumo' else 'policy')
+        name, _, variant = driver.partition(':')   # rule_based:<driver of the sanity sweep>
+        parameters = sanity_drivers[variant] if variant else None
+        env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == 'sumo' else 'policy')
         try:
-            controller = None if driver == 'sumo' else RuleBasedDriver.for_env(env)
+            controller = None if name == 'sumo' else RuleBasedDriver.for_env(env, parameters)
             result = EvaluationResult()
             played = run_episodes(env, controller, seeds, result, desc=driver)
         finally:
             env.close()
-        runs += [EvaluatedRun(f'{driver}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result)
-                 for mode in modes]
+        label = driver.replace(':', '_')
+        runs += [EvaluatedRun(f'{label}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))),
+                              result) for mode in modes]
     env = ExitDecisionEnv(config, mode=modes[0])
     try:
         for path in policies:
@@ -140,81 +145,74 @@ def read_summary(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
     return runs
 
 
-def target_checks(runs: dict[str, dict[str, tuple[float, float]]], modes: Sequence[str] = ('AGGI', 'AGGP', 'CONI', 'CONP'),
-                  collision_target: float = 0.01, exit_target: float = 0.95) -> list[str]:
-    """The targets and expected orderings of issue 3 / SPEC section 6, checked on the numbers."""
-    def value(run: str, metric: str) -> float:
-        return runs[run][metric][0]
+def interval_text(row: dict, key: str, digits: int = 3) -> str:
+    return f'{row[key]:+.{digits}f} [{row[key + "_low"]:+.{digits}f}, {row[key + "_high"]:+.{digits}f}]'
 
+
+def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditioned',
+                  exit_target: float = 0.99, collision_target: float = 0.0067) -> list[str]:
+    """The targets of the learning issue, checked on comparison.csv (every run against the
+    neutral teacher under the same mode, paired over the test seeds)."""
+    rows = {(r['run'], r['mode']): r for r in comparison}
+    modes = [m for run, m in rows if run == conditioned]
     lines = []
     for mode in modes:
-        run = f'mdgqn_{mode}'
-        if run not in runs:
+        r = rows[(conditioned, mode)]
+        safe = float(r['p_CAV']) >= exit_target and float(r['p_collision_CAV']) <= collision_target and not float(r['capped'])
+        beats = float(r['d_reward_low']) > 0
+        lines.append(f'- {mode}: Exit-1 {float(r["p_CAV"]):.3f} (>= {exit_target}), CAV collisions '
+                     f'{float(r["p_collision_CAV"]):.4f} (<= {collision_target}), {int(float(r["capped"]))} capped: '
+                     f'{"met" if safe else "NOT met"}; return − teacher {interval_text(r, "d_reward")}: '
+                     f'{"beats the teacher" if beats else "does NOT beat the teacher"}')
+        best = [(run, x) for (run, m), x in rows.items() if m == mode and run.startswith('rule_based_')]
+        if best:
+            run, x = max(best, key=lambda item: float(item[1]['reward']))
+            diff = float(r['reward']) - float(x['reward'])
+            lines.append(f'  - against the best sanity-sweep driver under {mode} on these seeds ({run}): '
+                         f'return {float(r["reward"]):.3f} vs {float(x["reward"]):.3f} ({diff:+.3f}, means)')
+        for (run, m), x in rows.items():
+            if m == mode and run != conditioned and not run.startswith(('rule_based', 'sumo')):
+                gap = float(r['reward']) - float(x['reward'])
+                lines.append(f'  - against the per-mode network {run}: return {float(r["reward"]):.3f} vs '
+                             f'{float(x["reward"]):.3f} ({gap:+.3f}, {gap / abs(float(x["reward"])):+.1%} of its '
+                             f'magnitude; target: not below by more than 2%)')
+    return lines
+
+
+def speed_orderings(evaluation_dir: Path, run: str, pairs=(('AGGI', 'CONI'), ('AGGP', 'CONP'),
+                                                          ('AGGI', 'AGGP'), ('CONI', 'CONP'))) -> list[str]:
+    """Paired speed differences between modes of one run on the same seeds."""
+    lines = []
+    for fast, slow in pairs:
+        a, b = evaluation_dir / f'{run}_{fast}.csv', evaluation_dir / f'{run}_{slow}.csv'
+        if not (a.exists() and b.exists()):
             continue
-        collisions, exits = value(run, 'p_collision_CAV'), value(run, 'p_CAV')
-        verdict = 'met' if collisions <= collision_target and exits >= exit_target else 'NOT met'
-        lines.append(f'- MDGQN {mode}: p_collision_CAV {collisions:.4f} (target <= {collision_target}), '
-                     f'p_CAV {exits:.3f} (target >= {exit_target}): {verdict}'
-                     + ('' if verdict == 'met' else f' (short by {max(collisions - collision_target, 0):.4f} '
-                        f'collisions, {max(exit_target - exits, 0):.3f} p_CAV)'))
-    # expected: aggressive faster than conservative, incentive faster than punished
-    faster_pairs = (('AGGI', 'CONI'), ('AGGP', 'CONP'), ('AGGI', 'AGGP'), ('CONI', 'CONP'))
-    for algorithm in ('mdgqn', 'gqn'):
-        for fast, slow in faster_pairs:
-            f, s = f'{algorithm}_{fast}', f'{algorithm}_{slow}'
-            if f in runs and s in runs:
-                holds = value(f, 'v_AVs') > value(s, 'v_AVs')
-                lines.append(f'- {algorithm.upper()}: {fast} faster than {slow} '
-                             f'({value(f, "v_AVs"):.2f} vs {value(s, "v_AVs"):.2f} m/s): '
-                             f'{"holds" if holds else "does not hold"}')
-    for mode in modes:
-        m, g = f'mdgqn_{mode}', f'gqn_{mode}'
-        if m in runs and g in runs:
-            better = (value(m, 'p_CAV') - 10 * value(m, 'p_collision_CAV')
-                      >= value(g, 'p_CAV') - 10 * value(g, 'p_collision_CAV'))
-            lines.append(f'- {mode}: MDGQN at least as good as GQN on p_CAV - 10 p_collision_CAV '
-                         f'({value(m, "p_CAV"):.3f}/{value(m, "p_collision_CAV"):.4f} vs '
-                         f'{value(g, "p_CAV"):.3f}/{value(g, "p_collision_CAV"):.4f}): '
-                         f'{"holds" if better else "does not hold"}')
-    reference = 'sumo'
-    if reference in runs:
-        faster = [f'{a}_{m}' for a in ('mdgqn', 'gqn') for m in ('AGGI', 'AGGP')
-                  if f'{a}_{m}' in runs and value(f'{a}_{m}', 'v_AVs') > value(reference, 'v_AVs')
-                  and value(f'{a}_{m}', 'p_collision_CAV') <= collision_target]
-        lines.append(f'- an aggressive mode faster than the SUMO reference ({value(reference, "v_AVs"):.2f} m/s) '
-                     f'at p_collision_CAV <= {collision_target}: '
-                     + (f'holds ({", ".join(faster)})' if faster else 'does not hold'))
+        first, second = {r['seed']: r for r in read_rows(a)}, {r['seed']: r for r in read_rows(b)}
+        diff = [float(first[s]['v_AVs']) - float(second[s]['v_AVs']) for s in first if s in second]
+        mean, low, high = paired_interval(diff)
+        verdict = 'holds' if low > 0 else 'reversed' if high < 0 else 'not resolved'
+        lines.append(f'- {run}: {fast} faster than {slow}: v_AVs {mean:+.3f} m/s [{low:+.3f}, {high:+.3f}]: {verdict}')
     return lines
 
 
-def policy_selection(policies_dir: Path) -> list[str]:
-    """Which validation run each shipped policy is (episode 0 = right after pre-training)."""
-    from exit_decision.policy import load_policy
-
-    lines = ['Shipped policies (`scripts/train_policies`), each the best of its validation runs '
-             '(greedy episodes on validation seeds; episode 0 = right after pre-training on '
-             'demonstrations), and the validation p_CAV of every run (episode: p_CAV):', '']
-    for path in sorted(policies_dir.glob('*/policy.pt')):
-        metadata = load_policy(path).metadata
-        validation = metadata.get('validation', {})
-        episodes = metadata.get('training', {}).get('validation', {}).get('episodes', '?')
-        history = path.parent / 'validation.csv'
-        runs = ', '.join(f'{int(float(r["episode"]))}: {float(r["p_CAV"]):.3f}'
-                         for r in read_rows(history)) if history.exists() else 'no log'
-        lines.append(f'- {path.parent.name}: kept from episode {validation.get("episode", "?"):g} '
-                     f'(validation on {episodes} episodes: p_CAV {validation.get("p_CAV", float("nan")):.3f}, '
-                     f'p_collision_CAV {validation.get("p_collision_CAV", float("nan")):.3f}); all runs: {runs}'
-                     + demonstrator_headway(path.parent / 'config.json'))
+def training_lines(run_dirs: Sequence[Path]) -> list[str]:
+    """Per training run: the checkpoint kept, its validation and the run's wall time."""
+    lines = []
+    for run_dir in run_dirs:
+        validation = run_dir / 'validation.csv'
+        if not validation.exists():
+            continue
+        rows = read_rows(validation)
+        best = max(rows, key=lambda r: float(r['score']))
+        kept = [r for r in rows if r['episode'] == best['episode']]
+        timing = run_dir / 'timing.json'
+        wall = json.loads(timing.read_text()) if timing.exists() else {}
+        episodes = max(int(r['episode']) for r in rows)
+        lines.append(f'- {run_dir.name}: {episodes} RL episodes after pre-training'
+                     + (f', {wall["total_s"] / 60:.0f} min wall time ({wall.get("note", "")})' if wall else '')
+                     + f'; kept the checkpoint of episode {best["episode"]} (score {float(best["score"]):.3f}): '
+                     + ', '.join(f'{r["mode"]} gain {float(r["gain"]):+.3f}, Exit-1 {float(r["p_CAV"]):.3f}' for r in kept))
     return lines
-
-
-def demonstrator_headway(run_config: Path) -> str:
-    """'; demonstrator headway 1 s' from a run's config.json (the config that made the run)."""
-    if not run_config.exists():
-        return ''
-    run = json.loads(run_config.read_text())
-    driver = ProjectConfig.model_validate(run['config']).rule_based(run['mode'])
-    return f'; demonstrator headway {driver.time_headway:g} s'
 
 
 def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
@@ -222,7 +220,7 @@ def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
     the traffic up until the episode was cut (its exit rate alone does not show this)."""
     lines = []
     for path in sorted(evaluation_dir.glob('*.csv')):
-        if path.name == 'summary.csv' or path.stem.endswith('_actions'):
+        if path.stem in ('summary', 'comparison') or path.stem.endswith('_actions'):
             continue
         rows = read_rows(path)
         capped = sum(float(row['steps']) >= max_steps for row in rows)
@@ -231,38 +229,39 @@ def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
     return lines or [f'- none: no episode ran into the {max_steps}-step cap']
 
 
-def results_page(evaluation_dir: Path, ablation_csv: Path | None, figures_dir: Path, out: Path,
-                 max_steps: int) -> Path:
+def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
+                 figures_dir: Path, out: Path, max_steps: int) -> Path:
     """docs/results.md from the generated artefacts: nothing in it is typed by hand."""
-    from exit_decision.learning.ablation import markdown as ablation_markdown
-
     relative = lambda path: Path(path).resolve().relative_to(out.parent.resolve()).as_posix()  # noqa: E731
-    summary_md = (evaluation_dir / 'summary.md').read_text().split('\n', 2)
+    commands = evaluation_dir.parent / 'commands.txt'
+    comparison = read_rows(evaluation_dir / 'comparison.csv')
     parts = ['# Results', '',
-             'Generated by `exit-decision report` from the outputs of the commands named below; '
-             'rerun them to reproduce every number.', '',
-             *(['```', (evaluation_dir.parent / 'commands.txt').read_text().strip(), '```', '']
-               if (evaluation_dir.parent / 'commands.txt').exists() else []),
-             '## Evaluation (test seeds never used in training)', '', summary_md[2].strip(), '',
-             f'Per-episode values and action counts: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
-             *policy_selection(Path('policies')), '',
-             '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
-             '## Targets and expected orderings', '', *target_checks(read_summary(evaluation_dir / 'summary.csv')), '',
-             'Each policy above names its demonstrator\'s time headway: where the modes imitate '
-             'different demonstrators, the speed orderings between them come from the demonstrators '
-             'as much as from the reward matrix. What was tried to reach the targets, with its '
-             'measurements: [`design.md`](design.md), sections "Rule-based driver" and "Learning".', '']
-    if ablation_csv is not None and ablation_csv.exists():
-        parts += ['## Ablation: from the paper taken literally to our setting', '',
-                  'Each step adds one measure to the previous (config/ablation.yaml); every step is trained with '
-                  'the same short budget and evaluated on the same test seeds, so the table compares the '
-                  'measures, not the final quality. Made by `'
-                  + ((ablation_csv.parent / 'command.txt').read_text().strip()
-                     if (ablation_csv.parent / 'command.txt').exists() else 'exit-decision ablation') + '`.', '',
-                  ablation_markdown(ablation_csv), '']
+             'Generated by `exit-decision report` from the outputs of the commands below; rerun them to '
+             'reproduce every number. Intervals are 95% (normal approximation) over paired seeds.', '',
+             *(['```', commands.read_text().strip(), '```', ''] if commands.exists() else []),
+             '## The reward prefers what its mode names (before any training)', '']
+    sanity = sanity_dir / 'reward_sanity.md'
+    if sanity.exists():
+        text = sanity.read_text()
+        parts += [text.split('\n', 2)[2].strip(), '']
+    parts += ['## The learned policies against their teacher (test seeds never used in training)', '',
+              (evaluation_dir / 'comparison.md').read_text().split('\n', 2)[2].strip(), '',
+              'Each row: the run minus the neutral rule-based teacher (`rule_based`) on the same seeds, under the '
+              'named mode\'s reward (the paper\'s global scalar reward, unscaled); ↑ / ↓: the interval excludes 0. '
+              f'Per-episode rows: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
+              '## Targets', '', *target_checks(comparison), '',
+              '## Speed orderings between modes (paired over the test seeds)', '',
+              *[line for run in sorted({r['run'] for r in comparison} | {'rule_based'})
+                for line in speed_orderings(evaluation_dir, run)], '',
+              '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
+              '## Training', '', *training_lines(run_dirs), '']
+    tradeoff = tradeoff_dir / 'tradeoff.png'
+    if tradeoff.exists():
+        parts += ['## Trade-off from one checkpoint', '', f'![tradeoff]({relative(tradeoff)})', '',
+                  f'Values: [`{relative(tradeoff_dir)}/tradeoff.csv`]({relative(tradeoff_dir)}/tradeoff.csv).', '']
     benchmarks = evaluation_dir.parent / 'benchmarks.txt'
     if benchmarks.exists():
-        parts += ['## Speed', '', '```', benchmarks.read_text().strip(), '```', '']
+        parts += ['## Speed of the software', '', '```', benchmarks.read_text().strip(), '```', '']
     figures = sorted(figures_dir.glob('*.png'))
     if figures:
         parts += ['## Figures', '', 'Made by `exit-decision plot`.', '']

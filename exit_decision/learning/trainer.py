@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import time
 import shutil
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -177,10 +178,10 @@ class Trainer:
         n = graph.num_nodes
         actions = np.full(n, NO_ACTION, np.int64)
         masks = np.zeros((n, self.grid.size), bool)
-        for row, vehicle_id in enumerate(graph.vehicle_ids):
-            if vehicle_id in decision.actions:
-                actions[row] = decision.actions[vehicle_id]
-                masks[row] = decision.masks[vehicle_id]
+        row_of = graph.row_of()
+        for vehicle_id, action in decision.actions.items():
+            actions[row_of[vehicle_id]] = action
+            masks[row_of[vehicle_id]] = decision.masks[vehicle_id]
         return actions, masks
 
     def final_record(self) -> DecisionRecord:
@@ -188,8 +189,9 @@ class Trainer:
         graph = self.env.graph
         snapshot = self.env.sim.snapshot
         masks = np.zeros((graph.num_nodes, self.grid.size), bool)
-        for row in graph.cav_rows():
-            masks[row] = self.shield.mask(snapshot.by_id[graph.vehicle_ids[row]], snapshot)
+        for vehicle_id, row in graph.row_of().items():
+            if graph.cav_mask[row]:
+                masks[row] = self.shield.mask(snapshot.by_id[vehicle_id], snapshot)
         return DecisionRecord(graph, np.full(graph.num_nodes, NO_ACTION, np.int64), masks)
 
     # --- learning ---------------------------------------------------------------------------
@@ -301,14 +303,17 @@ class Trainer:
         (self.out_dir / 'config.json').write_text(json.dumps(
             {'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed, 'episodes': episodes,
              'config': self.config.model_dump()}, indent=2))
+        clock = {'start': time.monotonic()}
         demo = self.training.demonstrations
         for i in tqdm(range(demo.episodes), desc='demonstrations', unit='ep', disable=not progress, leave=False):
             for transition in self.collect_episode(DEMONSTRATION_SEED + i, demonstrate=True, epsilon=0.0):
                 self.demos.add(transition)
         if resume is not None:
             self.load_state(resume)
-        elif len(self.demos):
+        clock['demonstrations'] = time.monotonic()
+        if resume is None and len(self.demos):
             self.pretrain()
+        clock['pretraining'] = time.monotonic()
         self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
         task = ValidationTask(self.config, self.validation_modes, self.validation_seeds())
         with Validator(task, self.training.validation.parallel, self.env) as validator:
@@ -331,7 +336,18 @@ class Trainer:
                 self.record_validation(path, per_mode)
         self.save_state()
         self.env.close()
+        self.write_timing(clock, episodes, resume is not None)
         return self.out_dir / 'policy.pt'
+
+    def write_timing(self, clock: dict[str, float], episodes: int, resumed: bool) -> None:
+        """timing.json: wall time of the run's phases (this invocation; a resumed run's own)."""
+        end = time.monotonic()
+        (self.out_dir / 'timing.json').write_text(json.dumps({
+            'demonstrations_s': clock['demonstrations'] - clock['start'],
+            'pretraining_s': clock['pretraining'] - clock['demonstrations'],
+            'rl_s': end - clock['pretraining'], 'total_s': end - clock['start'], 'episodes': episodes,
+            'note': 'resumed: this invocation only' if resumed else 'demonstrations, pre-training, RL and validation'},
+            indent=2))
 
     def train_episode(self) -> dict[str, float]:
         """One training episode with learning after every decision; one row of training.csv

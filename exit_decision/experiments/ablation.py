@@ -1,4 +1,8 @@
-"""The ablation: train and evaluate each cumulative step of config/ablation.yaml."""
+"""The ablation: train and evaluate each cumulative step of config/ablation.yaml.
+
+A step is a name, a config override (merged over the files and the earlier steps) and
+optionally ``train_mode: conditioned`` (that step trains the one mode-conditioned network;
+every step is evaluated at the ablation's mode, against the same test seeds)."""
 from __future__ import annotations
 
 import shutil
@@ -10,6 +14,7 @@ from exit_decision.evaluation.evaluate import evaluate
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
 from exit_decision.policy import PolicyController, load_policy
+from exit_decision.reward import weight_input
 from exit_decision.tables import read_rows, write_rows
 
 #: the ablation's short runs validate less often, on fewer episodes, than the shipped policies
@@ -17,17 +22,18 @@ ABLATION_VALIDATION = {'training': {'validation': {'every_episodes': 20, 'episod
 COLUMNS = ('p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking', 'reward')
 
 
-def ablation_steps(path: Path) -> list[tuple[str, dict]]:
-    """(name, cumulative override) per step."""
+def ablation_steps(path: Path) -> list[tuple[str, dict, str | None]]:
+    """(name, cumulative override, training mode: None = the ablation's mode) per step."""
     data = load_yaml(path)
     if not isinstance(data, dict) or not isinstance(data.get('steps'), list):
         raise ConfigError(f'{path}: expected a list under "steps"')
-    steps, override = [], {}
+    steps, override, train_mode = [], {}, None
     for index, step in enumerate(data['steps']):
-        if not isinstance(step, dict) or set(step) != {'name', 'override'}:
-            raise ConfigError(f'{path}: steps.{index}: needs exactly "name" and "override"')
+        if not isinstance(step, dict) or not {'name', 'override'} <= set(step) <= {'name', 'override', 'train_mode'}:
+            raise ConfigError(f'{path}: steps.{index}: needs "name" and "override" (and may have "train_mode")')
         override = deep_merge(override, step['override'])
-        steps.append((step['name'], override))
+        train_mode = step.get('train_mode', train_mode)
+        steps.append((step['name'], override, train_mode))
     return steps
 
 
@@ -38,16 +44,17 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
     out_dir.mkdir(parents=True, exist_ok=True)
     directory = config_dir or default_config_dir()
     table = out_dir / 'ablation.csv'
-    for index, (name, override) in enumerate(ablation_steps(directory / 'ablation.yaml')):
+    for index, (name, override, train_mode) in enumerate(ablation_steps(directory / 'ablation.yaml')):
         if only and index not in only:
             continue
         config = load_project(directory, overrides=[override, ABLATION_VALIDATION])
         run_dir = out_dir / f'step{index}'
         shutil.rmtree(run_dir, ignore_errors=True)   # a step that is run again starts afresh
-        policy_path = Trainer(config, algorithm, mode, seed, run_dir).run(episodes)
+        policy_path = Trainer(config, algorithm, train_mode or mode, seed, run_dir).run(episodes)
         policy = load_policy(policy_path)
         env = ExitDecisionEnv(config, mode=mode)
-        result = evaluate(env, PolicyController(policy, env.shield), range(test_seed, test_seed + eval_episodes))
+        weights = weight_input(config.mode(mode)) if policy.conditioned else None
+        result = evaluate(env, PolicyController(policy, env.shield, weights), range(test_seed, test_seed + eval_episodes))
         env.close()
         summary = summarize(result.episodes)
         row = {'step': index, 'name': name, 'episodes': episodes, 'test_episodes': eval_episodes,

@@ -1,0 +1,79 @@
+"""One episode's log and its metrics (SPEC section 6; paper 000, Section 5.2).
+
+``EpisodeLog.record`` takes each step's result, its reward under the env's mode and its
+reward vector; ``EpisodeLog.metrics`` gives: v_AVs and v_s (mean speed over CAV-steps / all
+vehicle-steps), p_collision (collisions / CAVs, the paper's definition) and p_collision_CAV
+(collisions involving a CAV / CAVs), N_braking (emergency-braking events: a contiguous run
+of steps at or below the threshold counts once) and braking vehicle-steps, p_CAV and p_HV2
+(left by Exit_1 / entered), the episode reward and the steps. Kept below the environment,
+which records into it; evaluation summarises the metrics.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from exit_decision.scenario.sumo_inputs import TASK_EXIT
+from exit_decision.traffic import StepResult
+
+METRICS = ('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking', 'braking_steps',
+           'p_CAV', 'p_HV2', 'reward', 'steps')
+
+
+@dataclass
+class EpisodeLog:
+    braking_threshold: float = -4.5
+    steps: int = 0
+    cav_speed_sum: float = 0.0
+    cav_steps: int = 0
+    speed_sum: float = 0.0
+    vehicle_steps: int = 0
+    collisions: int = 0
+    cav_collisions: int = 0
+    braking_events: int = 0
+    braking_steps: int = 0
+    entered: dict[str, set[str]] = field(default_factory=dict)
+    exits: dict[tuple[str, str], int] = field(default_factory=dict)   # (class, exit edge) -> count
+    rewards: list[float] = field(default_factory=list)
+    reward_vector: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))  # summed over steps
+
+    def record(self, step: StepResult, reward: float | None = None, reward_vector: np.ndarray | None = None) -> None:
+        self.steps += 1
+        for vehicle in step.vehicles:
+            self.entered.setdefault(vehicle.vehicle_class, set()).add(vehicle.vehicle_id)
+            self.speed_sum += vehicle.speed
+            self.vehicle_steps += 1
+            if vehicle.is_cav:
+                self.cav_speed_sum += vehicle.speed
+                self.cav_steps += 1
+            self.braking_steps += vehicle.acceleration <= self.braking_threshold
+        self.braking_events += len(step.braking_starts)
+        self.collisions += len(step.collisions)
+        self.cav_collisions += sum(1 for c in step.collisions if c.involves_cav)
+        for arrival in step.arrivals:
+            key = (arrival.vehicle_class, arrival.exit_edge)
+            self.exits[key] = self.exits.get(key, 0) + 1
+        if reward is not None:
+            self.rewards.append(reward)
+        if reward_vector is not None:
+            self.reward_vector += reward_vector
+
+    def count(self, vehicle_class: str) -> int:
+        return len(self.entered.get(vehicle_class, ()))
+
+    def metrics(self) -> dict[str, float]:
+        n_cav, n_hv2 = self.count('CAV'), self.count('HV2')
+        nan = float('nan')
+        return {
+            'v_AVs': self.cav_speed_sum / self.cav_steps if self.cav_steps else nan,
+            'v_s': self.speed_sum / self.vehicle_steps if self.vehicle_steps else nan,
+            'p_collision': self.collisions / n_cav if n_cav else nan,
+            'p_collision_CAV': self.cav_collisions / n_cav if n_cav else nan,
+            'N_braking': float(self.braking_events),
+            'braking_steps': float(self.braking_steps),
+            'p_CAV': self.exits.get(('CAV', TASK_EXIT), 0) / n_cav if n_cav else nan,
+            'p_HV2': self.exits.get(('HV2', TASK_EXIT), 0) / n_hv2 if n_hv2 else nan,
+            'reward': float(sum(self.rewards)) if self.rewards else nan,
+            'steps': float(self.steps),
+        }
