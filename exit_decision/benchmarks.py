@@ -53,15 +53,19 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
         'demonstrations': config.training.demonstrations.model_copy(update={'episodes': 1, 'pretrain_updates': 0}),
         'validation': config.training.validation.model_copy(update={'every_episodes': 10 ** 6})})
     config = config.model_copy(update={'training': training})
-    lines = [f'learning benchmark ({episodes} episode(s) each, torch threads: 1)']
+    lines = [f'learning benchmark, the mode-conditioned MDGQN ({episodes} episode(s) each, torch threads: 1)']
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(config, 'mdgqn', config.env.mode, seed, Path(tmp))
+        trainer = Trainer(config, 'mdgqn', 'conditioned', seed, Path(tmp))
+        for transition in trainer.collect_episode(seed, demonstrate=True, epsilon=0.0):
+            trainer.demos.add(transition)
         timings = {}
         for label, updates in (('without learning', 0), ('with learning', training.updates_per_decision)):
-            trainer.training = training.model_copy(update={'updates_per_decision': updates})
+            def learn(transitions: list, updates: int = updates) -> None:
+                for _ in range(updates):
+                    trainer.agent.update(*trainer.sample(), 1.0)
             steps, started = 0, time.perf_counter()
             for episode in range(episodes):
-                trainer.run_episode(seed + episode, demonstrate=False, epsilon=0.1)
+                trainer.collect_episode(seed + episode, demonstrate=False, epsilon=0.1, on_decision=learn)
                 steps += trainer.env.episode_log.steps
             elapsed = time.perf_counter() - started
             timings[label] = (steps / elapsed, elapsed / episodes)
@@ -82,7 +86,7 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
         samples = []
         for _ in range(1000):
             started = time.perf_counter()
-            q_values(network, graph)
+            q_values(network, graph, np.full(6, 0.25))
             samples.append((time.perf_counter() - started) * 1000)
         samples = np.array(samples[50:])
         lines.append(f'  greedy inference, {n} vehicles all CAVs, one forward: median {np.median(samples):.3f} ms, '

@@ -1,6 +1,4 @@
 """Integration tests of the ROS 2 stack: nodes in their own processes, on loopback only."""
-import math
-
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
@@ -49,7 +47,7 @@ def set_parameter(test: ProbeNode, node_name: str, name: str, value):
 def test_stack_runs_switches_mode_records_and_replays(setup):
     root, config_dir, policies = setup['root'], setup['config_dir'], setup['policies']
     bag = root / 'bag'
-    run = run_stack(mode='AGGP', algorithm='mdgqn', episodes=1, seed=10_000, bag_path=bag, log_dir=root / 'logs',
+    run = run_stack(mode='AGGP', algorithm='mdgqn_conditioned', episodes=1, seed=10_000, bag_path=bag, log_dir=root / 'logs',
                     switch_to='CONP', switch_at_step=100, config_dir=str(config_dir), policy_dir=str(policies),
                     timeout=300)
     assert run.mode_switch.endswith('accepted'), run.mode_switch
@@ -63,11 +61,13 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
     assert len(topics[GRAPH_TOPIC]) == steps + 1
     modes = [m.mode for m in topics[COMMANDS_TOPIC]]
     assert modes[0] == 'AGGP' and modes[-1] == 'CONP' and modes.count('CONP') < len(modes)
-    assert len(topics[COMMANDS_TOPIC]) == math.ceil(steps / 5), 'one decision every 5 steps, none missed'
+    assert len(topics[COMMANDS_TOPIC]) == steps // 5 + 1, 'a decision on every state of a 5th step, none missed'
     report = replay_decisions(bag, load_project(config_dir), policies)
     assert report.commands > 0 and report.matching == report.commands and report.missing_inputs == 0
     other = replay_decisions(bag, load_project(config_dir), policies, mode='AGGI')
-    assert other.matching < other.commands, 'another mode decides differently'
+    assert other.matching < other.commands, 'the one conditioned network decides differently at another mode'
+    per_mode = replay_decisions(bag, load_project(config_dir), policies, algorithm='mdgqn')
+    assert per_mode.matching < per_mode.commands, 'a per-mode policy is another network'
 
 
 def test_mode_parameter_refuses_unknown_values_with_a_reason(setup):

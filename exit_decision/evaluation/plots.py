@@ -116,7 +116,8 @@ def validation_curves(run_dir: Path, out: Path, exit_target: float = 0.99) -> Pa
     gain_ax.axhline(0.0, color='black', linestyle='--', label='teacher (neutral rule-based)')
     gain_ax.set_ylabel('return − teacher (validation, paired)')
     exit_ax.axhline(exit_target, color='red', linestyle=':', label=f'target {exit_target:g}')
-    exit_ax.axhline(1.0, color='black', linestyle='--', label='teacher')
+    if 'teacher_p_CAV' in rows[0]:
+        exit_ax.axhline(float(rows[0]['teacher_p_CAV']), color='black', linestyle='--', label='teacher')
     exit_ax.set_ylabel('Exit-1 rate (validation)')
     for ax in (gain_ax, exit_ax):
         ax.set_xlabel('training episode (0 = after pre-training)')
@@ -161,8 +162,11 @@ def speeds(evaluation_dir: Path, out: Path) -> Path | None:
 
 
 def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
-    paths = []
+    paths, seen = [], set()
     for source in sorted(evaluation_dir.glob('*_actions.csv')):
+        if source.read_bytes() in seen:
+            continue   # the same episodes scored under another mode: the same actions
+        seen.add(source.read_bytes())
         data = read_csv(source)
         accelerations = np.unique(data['acceleration'])
         grid = np.zeros((3, len(accelerations)))

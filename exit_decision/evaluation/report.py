@@ -15,7 +15,7 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
-from exit_decision.policy import load_policy
+from exit_decision.policy import CONDITIONED_SUFFIX, load_policy
 from exit_decision.tables import read_rows, write_rows
 
 
@@ -146,7 +146,8 @@ def read_summary(path: Path) -> dict[str, dict[str, tuple[float, float]]]:
 
 
 def interval_text(row: dict, key: str, digits: int = 3) -> str:
-    return f'{row[key]:+.{digits}f} [{row[key + "_low"]:+.{digits}f}, {row[key + "_high"]:+.{digits}f}]'
+    mean, low, high = (float(row[k]) for k in (key, key + '_low', key + '_high'))
+    return f'{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]'
 
 
 def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditioned',
@@ -251,7 +252,9 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
               f'Per-episode rows: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',
               '## Targets', '', *target_checks(comparison), '',
               '## Speed orderings between modes (paired over the test seeds)', '',
-              *[line for run in sorted({r['run'] for r in comparison} | {'rule_based'})
+              'A conditioned policy acts at each mode\'s weights; drivers and per-mode policies drive the same '
+              'episodes whatever the mode scoring them, so only the conditioned runs are compared here.', '',
+              *[line for run in sorted({r['run'] for r in comparison if r['run'].endswith(CONDITIONED_SUFFIX)})
                 for line in speed_orderings(evaluation_dir, run)], '',
               '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
               '## Training', '', *training_lines(run_dirs), '']

@@ -64,6 +64,7 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
             **{k: float(np.nanmean([e[k] for e in run.episodes])) for k in ('p_CAV', 'p_collision_CAV', 'v_AVs', 'N_braking')},
             'capped': float(sum(e['steps'] >= max_steps for e in run.episodes)),
             'return': float(own.mean()), 'teacher_return': float(np.mean([e['reward'] for e in theirs])),
+            'teacher_p_CAV': float(np.nanmean([e['p_CAV'] for e in theirs])),
             'gain': gain, 'gain_low': low, 'gain_high': high}
     return out
 
