@@ -19,8 +19,11 @@ The reward is computed in two parts so that one experience can be scored under a
 Variants: ``literal`` is the paper as written; ``bounded`` caps every exponent and the
 lane-change count (ours: the literal terms reach 1e10) and counts per-step incentives per
 step (the calibration of earlier releases, kept for the ablation); ``calibrated`` (ours, the
-default) counts the per-step incentives per metre driven, so a CAV earns them for the road it
-covers, not for the time it stays (per step, faster safe driving never paid: docs/design.md).
+default) counts the efficiency and smooth-driving incentives per metre driven, so a CAV earns
+them for the road it covers, not for the time it stays (per step, faster safe driving never
+paid: docs/design.md). The safety incentive stays per step (``safety_one`` has no vehicle):
+that is the form the scales were calibrated and every result measured with; it still pays
+time on the road in the safety row (docs/design.md, "Reward", known defect).
 """
 from __future__ import annotations
 
@@ -92,7 +95,10 @@ def scalar(vector: np.ndarray, weights: np.ndarray) -> np.ndarray | float:
 def check_weight_input(weights: Sequence[float]) -> str | None:
     """Why six numbers are not a valid mode (None if they are): four non-negative decision
     weights summing to 1, then non-negative incentive and punishment weights summing to 1."""
-    values = np.asarray(weights, dtype=float)
+    try:
+        values = np.asarray(weights, dtype=float)
+    except (TypeError, ValueError):
+        return f'expected {WEIGHT_INPUT_SIZE} numbers, got {weights!r}'
     if values.shape != (WEIGHT_INPUT_SIZE,):
         return f'expected {WEIGHT_INPUT_SIZE} numbers (result, efficiency, comfort, safety, incentive, ' \
                f'punishment), got {values.size}'
@@ -234,7 +240,7 @@ class BaselineReward:
     Its vector holds the four terms already weighted (one entry each), so every mode scores
     it the same: the baseline has no modes."""
 
-    def __init__(self, config: BaselineRewardConfig, step_length: float = 0.1, braking_threshold: float = -4.5):
+    def __init__(self, config: BaselineRewardConfig):
         self.config = config
 
     def weights(self, mode: ModeConfig) -> np.ndarray:

@@ -8,6 +8,7 @@ from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape, normalize_adjacency
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.policy import PolicyError, load_policy, save_policy
+from exit_decision.reward import weights_of_input
 
 A = 4
 
@@ -111,7 +112,7 @@ def make_batch(next_q_rows_alive=True):
     (transition,) = acc.finish(final, terminated=False)
     buffer.add(transition)
     batch = buffer.sample(np.array([0]))
-    batch['rewards'] = scored_rewards(batch, np.array([[1.0, 0, 0, 0, 1.0, 0]]), 'own')
+    batch['rewards'] = scored_rewards(batch, weights_of_input(np.array([[1.0, 0, 0, 0, 1.0, 0]])), 'own')
     return batch
 
 
@@ -226,5 +227,5 @@ def test_relabelled_rewards_score_each_transition_under_its_own_weights():
     batch = {**batch, 'returns': np.concatenate([batch['returns']] * 2),
              'global_returns': np.concatenate([batch['global_returns']] * 2)}
     weights = np.array([[1.0, 0, 0, 0, 1.0, 0], [0.5, 0.5, 0, 0, 0.5, 0.5]])
-    rewards = scored_rewards(batch, weights, 'own')
+    rewards = scored_rewards(batch, weights_of_input(weights), 'own')
     assert rewards[0, 0] == pytest.approx(1.0) and rewards[1, 0] == pytest.approx(0.25)

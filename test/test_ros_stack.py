@@ -111,6 +111,9 @@ def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(s
         assert get_parameters(test, 'decision_node', ['mode']) == ['AGGI'], 'the weights of a mode name it'
         refused = set_parameter(test, 'decision_node', 'reward_weights', [0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
         assert not refused.successful and 'must sum to 1' in refused.reason
+        refused = set_parameter(test, 'decision_node', 'reward_weights', ['a', 'b'])
+        assert not refused.successful, 'a wrong type is refused'
+        assert get_parameters(test, 'decision_node', ['mode']) == ['AGGI'], 'and the node lives on'
         refused = set_parameter(test, 'decision_node', 'algorithm', 'gqn')
         assert refused.successful, 'per-mode gqn has a policy for AGGI'
         refused = set_parameter(test, 'decision_node', 'reward_weights', point)
@@ -173,7 +176,9 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
                                   lambda m: latest.update(step=m.step), STREAM_QOS)
     commands = []
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, commands.append, STREAM_QOS)
-    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 0.3},
+    # without a decision node the bridge waits command_timeout per decision step: 1 s leaves the
+    # restarted node ~50 s of episode to come back in (0.3 s raced a slow start on a fresh clone)
+    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 1.0},
                         root / 'bridge_restart.log')
     try:
         assert test.spin_until(lambda: latest['step'] >= 50, 60)

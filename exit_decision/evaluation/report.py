@@ -172,7 +172,7 @@ def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditio
             lines.append(f'  - against the best sanity-sweep driver under {mode} on these seeds ({run}): '
                          f'return {float(r["reward"]):.3f} vs {float(x["reward"]):.3f} ({diff:+.3f}, means)')
         for (run, m), x in rows.items():
-            if m == mode and run != conditioned and not run.startswith(('rule_based', 'sumo')):
+            if m == mode and run == f'{conditioned.removesuffix(CONDITIONED_SUFFIX)}_{mode}':
                 gap = float(r['reward']) - float(x['reward'])
                 lines.append(f'  - against the per-mode network {run}: return {float(r["reward"]):.3f} vs '
                              f'{float(x["reward"]):.3f} ({gap:+.3f}, {gap / abs(float(x["reward"])):+.1%} of its '

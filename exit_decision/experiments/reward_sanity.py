@@ -57,7 +57,6 @@ def _episode(task: tuple) -> list[dict]:
     """One driver on one seed (in a worker process: libsumo is one simulation per process)."""
     config, name, parameters, seed, variants = task
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.evaluate import EvaluationResult, run_episode
 
     env = _worker_env(config, variants[0])

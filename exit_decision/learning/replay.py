@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from exit_decision.graph import TrafficGraph
-from exit_decision.reward import weights_of_input
 
 NO_ACTION = -1
 
@@ -101,10 +100,10 @@ class EpisodeAccumulator:
             next_masks=stop.masks)
 
 
-def scored_rewards(batch: dict[str, np.ndarray], weights: np.ndarray, credit: str) -> np.ndarray:
-    """(B, N) per-row rewards of a sampled batch under per-element mode weights (B, 6):
-    each row's own credit (``credit='own'``) or the global return for every row."""
-    multipliers = weights_of_input(weights)                              # (B, 4, 2)
+def scored_rewards(batch: dict[str, np.ndarray], multipliers: np.ndarray, credit: str) -> np.ndarray:
+    """(B, N) per-row rewards of a sampled batch under per-element multipliers of the reward
+    vector (B, 4, 2; ``reward.weights_of_input`` of a mode's weights): each row's own credit
+    (``credit='own'``) or the global return for every row."""
     if credit == 'own':
         return (batch['returns'] * multipliers[:, None]).sum(axis=(-2, -1)).astype(np.float32)
     rewards = (batch['global_returns'] * multipliers).sum(axis=(-2, -1))

@@ -45,7 +45,7 @@ from exit_decision.learning.networks import NetworkShape
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint
 from exit_decision.policy import git_revision, greedy_decision, q_values, save_policy
-from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input
+from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input, weights_of_input
 from exit_decision.tables import append_row
 
 DEMONSTRATION_SEED = 800_000
@@ -91,8 +91,12 @@ class Trainer:
         self.training = t = config.training
         self.out_dir = out_dir
         self.conditioned = mode == CONDITIONED
+        if self.conditioned and config.reward(config.env.reward_variant).kind != 'matrix':
+            raise ValueError(f'the conditioned network needs a matrix reward, not {config.env.reward_variant!r}')
         c = t.conditioning
-        self.validation_modes = list(c.validation_modes) if self.conditioned else [config.mode(mode) and mode]
+        if not self.conditioned:
+            config.mode(mode)   # an unknown mode fails here, naming the known ones
+        self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
         self.env = ExitDecisionEnv(config, mode=self.validation_modes[0])
         self.grid, self.shield = self.env.actions, self.env.shield
         self.rng = np.random.default_rng(seed)
@@ -216,9 +220,10 @@ class Trainer:
         if self.conditioned:
             weights = self.sampler.sample(size)
             batch['weights'] = weights.astype(np.float32)
-        else:
-            weights = np.tile(weight_input(self.config.mode(self.mode)), (size, 1))
-        batch['rewards'] = scored_rewards(batch, weights, t.credit) * np.float32(t.reward_scale)
+            multipliers = weights_of_input(weights)
+        else:   # the variant's own weights of the mode (the baseline reward has no modes)
+            multipliers = np.broadcast_to(self.env.mode_weights, (size, 4, 2))
+        batch['rewards'] = scored_rewards(batch, multipliers, t.credit) * np.float32(t.reward_scale)
         del batch['returns'], batch['global_returns']
         return batch, np.concatenate(is_demo)
 

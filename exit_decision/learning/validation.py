@@ -39,7 +39,7 @@ def _env_and_teacher(task: ValidationTask, env=None):
         if 'env' not in _worker:
             _worker['env'] = ExitDecisionEnv(task.config, mode=task.modes[0])
         env = _worker['env']
-    key = tuple(task.seeds)
+    key = (tuple(task.seeds), id(env), task.config.model_dump_json())   # another run or env: another teacher
     if _worker.get('teacher_seeds') != key:
         _worker['teacher'] = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
         _worker['teacher_seeds'] = key

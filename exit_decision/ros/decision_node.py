@@ -78,11 +78,23 @@ class DecisionNode(Node):
                                       f'as algorithm {algorithm!r} needs')
                 weights = weight_input(config.mode(modes[0])) if conditioned else None
                 self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield, weights)
+        if not modes:
+            raise PolicyError('parameter modes: give at least one mode')
         self.mode = p('mode', modes[0], describe(
             'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE]))).value
-        self.reward_weights = list(p('reward_weights', list(weight_input(config.mode(self.mode))), describe(
+        if not isinstance(self.mode, str) or self.mode not in config.modes and self.mode != CUSTOM_MODE:
+            raise PolicyError(f'mode {self.mode!r}: unknown; known modes: {", ".join(config.modes)}')
+        start_weights = weight_input(config.mode(self.mode if self.mode in config.modes else modes[0]))
+        self.reward_weights = list(p('reward_weights', [float(x) for x in start_weights], describe(
             'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
-            '(sum 1); a conditioned policy decides for any such point')).value)
+            '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode')).value)
+        reason = check_weight_input(self.reward_weights)
+        if reason:
+            raise PolicyError(f'reward_weights {self.reward_weights}: {reason}')
+        if self.mode_of(self.reward_weights) != self.mode:
+            # weights given at start win: the mode is named after them
+            self.mode = self.mode_of(self.reward_weights)
+            self.set_parameters([Parameter('mode', Parameter.Type.STRING, self.mode)])
         self.algorithm = p('algorithm', algorithms[-1], describe(
             'gqn, mdgqn (per-mode policies) or mdgqn_conditioned', constraints=' | '.join(algorithms))).value
         problem = self.problem({})
@@ -114,11 +126,12 @@ class DecisionNode(Node):
         return CUSTOM_MODE
 
     def complete_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
-        """Keep mode and reward_weights consistent: setting one sets the other too."""
+        """Keep mode and reward_weights consistent: setting one sets the other too (values of
+        the wrong type are left for the validation to refuse)."""
         names = {p.name for p in parameters}
         if 'mode' in names and 'reward_weights' not in names:
             mode = next(p.value for p in parameters if p.name == 'mode')
-            if mode in self.config.modes:
+            if isinstance(mode, str) and mode in self.config.modes:
                 parameters.append(Parameter('reward_weights', Parameter.Type.DOUBLE_ARRAY,
                                             [float(x) for x in weight_input(self.config.mode(mode))]))
         elif 'reward_weights' in names and 'mode' not in names:
@@ -132,13 +145,18 @@ class DecisionNode(Node):
         chosen = {'mode': self.mode, 'algorithm': self.algorithm, 'reward_weights': self.reward_weights, **changes}
         algorithm, mode = chosen['algorithm'], chosen['mode']
         algorithms = sorted({a for a, _ in self.controllers})
-        if algorithm not in algorithms:
-            return f'unknown algorithm {algorithm!r}: no policy loaded for it; loaded algorithms: {", ".join(algorithms)}'
+        if not isinstance(mode, str) or not isinstance(algorithm, str):
+            return f'mode and algorithm are strings, got mode {mode!r}, algorithm {algorithm!r}'
         reason = check_weight_input(chosen['reward_weights'])
         if reason:
-            return f'reward_weights {list(chosen["reward_weights"])}: {reason}'
+            return f'reward_weights {chosen["reward_weights"]!r}: {reason}'
+        if algorithm not in algorithms:
+            return f'unknown algorithm {algorithm!r}: no policy loaded for it; loaded algorithms: {", ".join(algorithms)}'
         if mode == CUSTOM_MODE and 'reward_weights' not in changes and 'mode' in changes:
             return f'mode {CUSTOM_MODE!r} is set by setting reward_weights to a point that is no configured mode'
+        if mode != self.mode_of(chosen['reward_weights']) and (mode in self.config.modes or mode == CUSTOM_MODE):
+            return (f'mode {mode!r} and reward_weights {list(chosen["reward_weights"])} disagree: set one of them '
+                    f'(the other follows)')
         if (algorithm, None) in self.controllers:
             if mode != CUSTOM_MODE and mode not in self.config.modes:
                 return f'unknown mode {mode!r}; known modes: {", ".join(self.config.modes)}'

@@ -29,12 +29,14 @@ class ReplayReport:
     commands: int = 0             # CAV commands compared
     matching: int = 0
     missing_inputs: int = 0       # command arrays whose graph or states are not in the bag
+    custom_weights: int = 0       # decided at custom reward_weights, which the bag does not hold
     differences: list[str] = field(default_factory=list)
 
     def summary(self, limit: int = 20) -> str:
         share = self.matching / self.commands if self.commands else float('nan')
         lines = [f'{self.decisions} decisions, {self.commands} CAV commands: {self.matching} match '
-                 f'({share:.1%}); {self.missing_inputs} decisions without recorded inputs']
+                 f'({share:.1%}); {self.missing_inputs} decisions without recorded inputs'
+                 + (f', {self.custom_weights} at custom reward_weights (not replayable)' if self.custom_weights else '')]
         lines += [f'  {d}' for d in self.differences[:limit]]
         if len(self.differences) > limit:
             lines.append(f'  ... and {len(self.differences) - limit} more differences')
@@ -59,6 +61,9 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
             report.missing_inputs += 1
             continue
         name, mode_name = algorithm or msg.algorithm, mode or msg.mode
+        if mode_name not in config.modes:
+            report.custom_weights += 1   # decided at reward_weights off the modes: not in the bag
+            continue
         conditioned = name.endswith(CONDITIONED_SUFFIX)
         path = policy_file or policy_dir / (name if conditioned else f'{name}_{mode_name}') / 'policy.pt'
         if path not in controllers:
