@@ -5,7 +5,6 @@ must not silently fall back to a default) and every error names the file and the
 """
 from __future__ import annotations
 
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Literal, TypeVar
@@ -289,11 +288,17 @@ class TrainingConfig(Strict):
 # --- loading ----------------------------------------------------------------------------
 
 def default_config_dir() -> Path:
-    """The source tree's config/ when running from a checkout, else the installed share dir."""
+    """The source tree's config/ when running from a checkout, else the installed package's
+    share directory (found through the ament index, as on a colcon install)."""
     in_tree = Path(__file__).resolve().parent.parent / 'config'
     if in_tree.is_dir():
         return in_tree
-    return Path(sys.prefix) / 'share' / 'exit_decision' / 'config'
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    try:
+        return Path(get_package_share_directory('exit_decision')) / 'config'
+    except PackageNotFoundError:
+        raise ConfigError('exit_decision is not in the ament index (AMENT_PREFIX_PATH): source the '
+                          'install\'s setup script, or pass --config-dir') from None
 
 
 SchemaT = TypeVar('SchemaT', bound=BaseModel)

@@ -1,5 +1,6 @@
 """The SUMO scenario through the libsumo wrapper (one simulation open at a time per process)."""
 import math
+import os
 
 import pytest
 
@@ -165,3 +166,11 @@ def test_collisions_are_real_and_reported(project_config):
         for c in result.collisions:   # colliders are removed from the road
             later = {v.vehicle_id for r in results[index:] for v in r.vehicles}
             assert c.collider not in later and c.victim not in later
+
+
+def test_sumo_tools_are_found_without_the_venv_on_path(monkeypatch):
+    """`.venv/bin/exit-decision` called directly: netconvert comes from the installed package."""
+    from exit_decision.scenario.sumo_inputs import sumo_tool
+    monkeypatch.setenv('PATH', '/usr/bin:/bin')
+    path = sumo_tool('netconvert')
+    assert path.endswith('/bin/netconvert') and os.access(path, os.X_OK)

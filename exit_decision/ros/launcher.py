@@ -26,8 +26,12 @@ from exit_decision.ros.conversions import metrics_from_event
 
 def executable(name: str) -> list[str]:
     """The installed ament executable, or the module when running from a checkout only."""
-    installed = Path(sys.prefix) / 'lib' / 'exit_decision' / name
-    if installed.is_file() and os.access(installed, os.X_OK):
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    try:
+        installed = Path(get_package_prefix('exit_decision')) / 'lib' / 'exit_decision' / name
+    except PackageNotFoundError:
+        installed = None
+    if installed is not None and installed.is_file() and os.access(installed, os.X_OK):
         return [str(installed)]
     return [sys.executable, '-m', f'exit_decision.ros.{name}']
 

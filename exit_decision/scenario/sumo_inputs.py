@@ -39,6 +39,22 @@ def _attrs(values: dict) -> str:
     return ' '.join(f'{key}={quoteattr(str(value))}' for key, value in values.items())
 
 
+def sumo_tool(name: str) -> str:
+    """Absolute path of a SUMO program: the installed eclipse-sumo package's own (so a user who
+    calls the venv's entry point without the venv on PATH still finds it), else PATH's."""
+    try:
+        import sumo
+        bundled = Path(sumo.SUMO_HOME) / 'bin' / name
+        if bundled.is_file():
+            return str(bundled)
+    except ImportError:
+        pass
+    found = shutil.which(name)
+    if found is None:
+        raise RuntimeError(f'{name} not found in the eclipse-sumo package or on PATH (see README)')
+    return os.path.abspath(found)   # it runs in another working directory
+
+
 def network_sources(road: RoadConfig) -> dict[str, str]:
     """Plain XML node, edge and connection files for netconvert."""
     l0, l1, l2 = road.highway_lengths
@@ -115,10 +131,7 @@ def build_network(road: RoadConfig) -> Path:
     sources = network_sources(road)
 
     def write(work: Path) -> None:
-        netconvert = shutil.which('netconvert')
-        if netconvert is None:
-            raise RuntimeError('netconvert not found on PATH (install the eclipse-sumo wheel, see README)')
-        netconvert = os.path.abspath(netconvert)   # it runs in another working directory
+        netconvert = sumo_tool('netconvert')
         for suffix, text in sources.items():
             (work / f'highway_exit.{suffix}').write_text(text, encoding='utf-8')
         command = [netconvert, '--node-files', 'highway_exit.nod.xml',
