@@ -259,7 +259,8 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
     received, clocks = [], []
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, received.append, STREAM_QOS)
     test.node.create_subscription(Clock, CLOCK_TOPIC, clocks.append, CLOCK_QOS)
-    player = start_node('player', {'bag_path': str(bag), 'rate': 5.0}, tmp_path / 'player.log')
+    player = start_node('player', {'bag_path': str(bag), 'rate': 5.0, 'wait_for_subscribers': 1},
+                        tmp_path / 'player.log')
     try:
         assert test.spin_until(lambda: len(received) == 20, 30), len(received)
         assert [m.step for m in received] == list(range(20)) and received[0].mode == 'CONI'

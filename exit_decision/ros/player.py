@@ -21,6 +21,9 @@ class Player(Node):
         self.path = Path(self.declare_parameter('bag_path', '', describe('bag to play', read_only=True)).value)
         self.rate = self.declare_parameter('rate', 1.0, describe('playback speed factor',
                                                                  float_range=(0.01, 1000.0))).value
+        self.wait_for_subscribers = self.declare_parameter('wait_for_subscribers', 0, describe(
+            'before playing, wait (up to 30 s) until every topic has this many subscribers; 0: '
+            'half a second for discovery', read_only=True, integer_range=(0, 100))).value
         if not self.path.exists():
             raise FileNotFoundError(f'{self.path}: no such bag')
 
@@ -29,7 +32,10 @@ class Player(Node):
         with Reader(self.path) as reader:
             publishers = {c.topic: self.create_publisher(message_class(c.msgtype), c.topic, topic_qos(c.topic))
                           for c in reader.connections}
-            time.sleep(0.5)   # let subscribers match before the first message
+            deadline = time.monotonic() + (30.0 if self.wait_for_subscribers else 0.5)
+            while time.monotonic() < deadline and (not self.wait_for_subscribers or any(
+                    p.get_subscription_count() < self.wait_for_subscribers for p in publishers.values())):
+                time.sleep(0.05)   # let subscribers match: a reliable volatile topic does not resend
             start_wall, start_bag = time.monotonic(), None
             for connection, timestamp, raw in reader.messages():
                 if not rclpy.ok(context=self.context):
