@@ -48,7 +48,7 @@ class ExitDecisionEnv(gym.Env):
         self.shield = Shield.of(config, self.actions, self.sim.geometry)
         self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
                                      scenario.step_length, scenario.emergency_braking_threshold)
-        self.set_mode(self.mode)
+        self.mode_weights = self.reward_fn.weights(config.mode(self.mode))
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
         self.observation_space = spaces.Dict({
             'features': spaces.Box(-1.0, np.inf, (n, f), np.float32),
@@ -58,11 +58,6 @@ class ExitDecisionEnv(gym.Env):
         self.action_space = spaces.MultiDiscrete(np.full(n, self.actions.size))
         self._window = max(1, round(LANE_CHANGE_WINDOW / scenario.step_length))
         self.graph: TrafficGraph | None = None
-
-    def set_mode(self, mode: str) -> None:
-        """Score the scalar reward (and the episode log's return) under another mode."""
-        self.mode_weights = self.reward_fn.weights(self.config.mode(mode))
-        self.mode = mode
 
     def _observation(self) -> dict[str, np.ndarray]:
         g = self.graph
@@ -74,7 +69,7 @@ class ExitDecisionEnv(gym.Env):
         result = self.sim.reset(episode_seed)
         self.graph_builder.reset()
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
-        self.episode_log = EpisodeLog(self.config.scenario.emergency_braking_threshold)
+        self.episode_log = EpisodeLog(self.config.scenario.emergency_braking_threshold, reward_weights=self.mode_weights)
         self._lane_changes = deque(maxlen=self._window)
         if self.step_inputs is not None:
             self.step_inputs.clear()
@@ -99,8 +94,7 @@ class ExitDecisionEnv(gym.Env):
         if self.step_inputs is not None:
             self.step_inputs.append(inputs)
         vector = self.reward_fn.vector(inputs)
-        total = vector.total()
-        self.episode_log.record(result, float(scalar(total, self.mode_weights)), total)
+        self.episode_log.record(result, vector.total())
         return result, vector
 
     def step(self, action):

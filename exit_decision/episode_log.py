@@ -1,7 +1,7 @@
 """One episode's log and its metrics (SPEC section 6; paper 000, Section 5.2).
 
-``EpisodeLog.record`` takes each step's result, its reward under the env's mode and its
-reward vector; ``EpisodeLog.metrics`` gives: v_AVs and v_s (mean speed over CAV-steps / all
+``EpisodeLog.record`` takes each step's result and its reward vector (the return is the
+vectors' sum scored under ``reward_weights``, the env's mode, by linearity); ``EpisodeLog.metrics`` gives: v_AVs and v_s (mean speed over CAV-steps / all
 vehicle-steps), p_collision (collisions / CAVs, the paper's definition) and p_collision_CAV
 (collisions involving a CAV / CAVs), N_braking (emergency-braking events: a contiguous run
 of steps at or below the threshold counts once) and braking vehicle-steps, p_CAV and p_HV2
@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from exit_decision.reward import scalar
 from exit_decision.scenario.sumo_inputs import TASK_EXIT
 from exit_decision.traffic import StepResult
 
@@ -35,10 +36,10 @@ class EpisodeLog:
     braking_steps: int = 0
     entered: dict[str, set[str]] = field(default_factory=dict)
     exits: dict[tuple[str, str], int] = field(default_factory=dict)   # (class, exit edge) -> count
-    rewards: list[float] = field(default_factory=list)
+    reward_weights: np.ndarray | None = None    # (4, 2) multipliers of the mode the return is scored under
     reward_vector: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))  # summed over steps
 
-    def record(self, step: StepResult, reward: float | None = None, reward_vector: np.ndarray | None = None) -> None:
+    def record(self, step: StepResult, reward_vector: np.ndarray | None = None) -> None:
         self.steps += 1
         for vehicle in step.vehicles:
             self.entered.setdefault(vehicle.vehicle_class, set()).add(vehicle.vehicle_id)
@@ -54,8 +55,6 @@ class EpisodeLog:
         for arrival in step.arrivals:
             key = (arrival.vehicle_class, arrival.exit_edge)
             self.exits[key] = self.exits.get(key, 0) + 1
-        if reward is not None:
-            self.rewards.append(reward)
         if reward_vector is not None:
             self.reward_vector += reward_vector
 
@@ -74,6 +73,6 @@ class EpisodeLog:
             'braking_steps': float(self.braking_steps),
             'p_CAV': self.exits.get(('CAV', TASK_EXIT), 0) / n_cav if n_cav else nan,
             'p_HV2': self.exits.get(('HV2', TASK_EXIT), 0) / n_hv2 if n_hv2 else nan,
-            'reward': float(sum(self.rewards)) if self.rewards else nan,
+            'reward': float(scalar(self.reward_vector, self.reward_weights)) if self.reward_weights is not None else nan,
             'steps': float(self.steps),
         }

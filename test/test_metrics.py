@@ -1,6 +1,7 @@
 """SPEC section 6 metrics from a hand-made episode log."""
 import math
 
+import numpy as np
 import pytest
 
 from exit_decision.episode_log import EpisodeLog
@@ -10,17 +11,26 @@ from exit_decision.traffic import Arrival, Collision, StepResult
 from conftest import make_vehicle
 
 
+def scored(value):
+    """A reward vector that the log's weights (1 on the result incentive) score as ``value``."""
+    vector = np.zeros((4, 2))
+    vector[0, 0] = value
+    return vector
+
+
 def test_metrics_of_a_hand_made_episode():
-    log = EpisodeLog(braking_threshold=-4.5)
+    weights = np.zeros((4, 2))
+    weights[0, 0] = 1.0
+    log = EpisodeLog(braking_threshold=-4.5, reward_weights=weights)
     cav1, cav2 = make_vehicle('c1', 'CAV', speed=20.0), make_vehicle('c2', 'CAV', speed=10.0)
     hv2 = make_vehicle('h2', 'HV2', speed=30.0)
-    log.record(StepResult(1, 0.1, [cav1, cav2, hv2]), reward=1.0)
+    log.record(StepResult(1, 0.1, [cav1, cav2, hv2]), scored(1.0))
     # c1 brakes hard for two steps (one event), h2 once later (a second event)
     braking = make_vehicle('c1', 'CAV', speed=20.0, acceleration=-5.0)
-    log.record(StepResult(2, 0.2, [braking, cav2, hv2], braking_starts=['c1']), reward=2.0)
+    log.record(StepResult(2, 0.2, [braking, cav2, hv2], braking_starts=['c1']), scored(2.0))
     log.record(StepResult(3, 0.3, [braking, cav2], arrivals=[Arrival('h2', 'HV2', 'Exit_1')],
                           collisions=[Collision('c2', 'x', 'CAV', 'HV1'), Collision('y', 'z', 'HV1', 'HV3')]),
-               reward=-3.0)
+               scored(-3.0))
     log.record(StepResult(4, 0.4, [], arrivals=[Arrival('c1', 'CAV', 'Exit_1')]))
     m = log.metrics()
     assert m['v_AVs'] == pytest.approx((20 + 10) * 3 / 6)

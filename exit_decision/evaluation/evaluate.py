@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -24,7 +24,6 @@ class Controller(Protocol):
 
 @dataclass
 class EvaluationResult:
-    episodes: list[dict[str, float]] = field(default_factory=list)
     action_counts: np.ndarray | None = None   # how often each action of the grid was chosen
     overrides: int = 0                         # first choices the shield refused
     decisions: int = 0                         # CAV decisions made
@@ -63,16 +62,6 @@ def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Seq
         metrics = run_episode(env, controller, seed, result)
         out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
     return out
-
-
-def evaluate(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
-             progress: bool = True) -> EvaluationResult:
-    result = EvaluationResult()
-    for seed in tqdm(seeds, desc=f'evaluate {controller.name if controller else "sumo"}', unit='ep',
-                     disable=not progress):
-        metrics = run_episode(env, controller, seed, result)
-        result.episodes.append({'seed': seed, **metrics})
-    return result
 
 
 @dataclass

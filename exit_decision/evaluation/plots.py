@@ -164,9 +164,10 @@ def speeds(evaluation_dir: Path, out: Path) -> Path | None:
 def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
     paths, seen = [], set()
     for source in sorted(evaluation_dir.glob('*_actions.csv')):
-        if source.read_bytes() in seen:
+        content = source.read_bytes()
+        if content in seen:
             continue   # the same episodes scored under another mode: the same actions
-        seen.add(source.read_bytes())
+        seen.add(content)
         data = read_csv(source)
         accelerations = np.unique(data['acceleration'])
         grid = np.zeros((3, len(accelerations)))

@@ -10,11 +10,10 @@ from pathlib import Path
 
 from exit_decision.config import ConfigError, default_config_dir, deep_merge, load_project, load_yaml
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.evaluation.evaluate import evaluate
+from exit_decision.evaluation.evaluate import evaluate_policy
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
-from exit_decision.policy import PolicyController, load_policy
-from exit_decision.reward import weight_input
+from exit_decision.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 
 #: the ablation's short runs validate less often, on fewer episodes, than the shipped policies
@@ -51,12 +50,13 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
         run_dir = out_dir / f'step{index}'
         shutil.rmtree(run_dir, ignore_errors=True)   # a step that is run again starts afresh
         policy_path = Trainer(config, algorithm, train_mode or mode, seed, run_dir).run(episodes)
-        policy = load_policy(policy_path)
         env = ExitDecisionEnv(config, mode=mode)
-        weights = weight_input(config.mode(mode)) if policy.conditioned else None
-        result = evaluate(env, PolicyController(policy, env.shield, weights), range(test_seed, test_seed + eval_episodes))
-        env.close()
-        summary = summarize(result.episodes)
+        try:
+            (run,) = evaluate_policy(env, load_policy(policy_path), [mode],
+                                     list(range(test_seed, test_seed + eval_episodes)))
+        finally:
+            env.close()
+        summary = summarize(run.episodes)
         row = {'step': index, 'name': name, 'episodes': episodes, 'test_episodes': eval_episodes,
                **{f'{c}_mean': summary[c][0] for c in COLUMNS}, **{f'{c}_std': summary[c][1] for c in COLUMNS}}
         earlier = [r for r in read_rows(table) if int(r['step']) != index] if table.exists() else []

@@ -63,11 +63,12 @@ def _episode(task: tuple) -> list[dict]:
     metrics = run_episode(env, RuleBasedDriver.for_env(env, parameters), seed, EvaluationResult())
     rows = []
     for variant in variants:
-        # every variant's vector comes from the same episode: re-score its steps
-        vector = env.episode_log.reward_vector if variant == variants[0] else _rescored(env, config, variant)
+        # every variant's vector comes from the same episode: its steps are scored again
+        reward = make_reward(config.reward(variant), config.scenario.step_length,
+                             config.scenario.emergency_braking_threshold)
+        vector = sum((reward.vector(inputs).total() for inputs in env.step_inputs), np.zeros((4, 2)))
         row = {'driver': name, 'seed': seed, 'variant': variant, **metrics}
         row.update({f'{r}_{side}': vector[i, j] for i, r in enumerate(ROWS) for j, side in enumerate(('I', 'P'))})
-        reward = make_reward(config.reward(variant), config.scenario.step_length)
         row.update({f'return_{mode}': float(scalar(vector, reward.weights(config.mode(mode)))) for mode in config.modes})
         rows.append(row)
     return rows
@@ -82,12 +83,6 @@ def _worker_env(config: ProjectConfig, variant: str):
     if _ENV is None:
         _ENV = ExitDecisionEnv(config, reward_variant=variant, keep_step_inputs=True)
     return _ENV
-
-
-def _rescored(env, config: ProjectConfig, variant: str) -> np.ndarray:
-    reward = make_reward(config.reward(variant), config.scenario.step_length,
-                         config.scenario.emergency_braking_threshold)
-    return sum((reward.vector(inputs).total() for inputs in env.step_inputs), np.zeros((4, 2)))
 
 
 def run_sweep(config: ProjectConfig, drivers: dict[str, RuleBasedConfig], seeds: list[int],

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import time
 import shutil
+import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
