@@ -178,7 +178,9 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, commands.append, STREAM_QOS)
     # without a decision node the bridge waits command_timeout per decision step: 1 s leaves the
     # restarted node ~50 s of episode to come back in (0.3 s raced a slow start on a fresh clone)
-    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 1.0},
+    # the bridge starts once graph builder, decision node and this probe listen (else the probe
+    # may match after a fast episode has ended: seen on a fresh clone)
+    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 1.0, 'wait_for_subscribers': 3},
                         root / 'bridge_restart.log')
     try:
         assert test.spin_until(lambda: latest['step'] >= 50, 60)
