@@ -30,6 +30,7 @@ setup(
             'decision_node = exit_decision.ros.decision_node:main',
             'recorder = exit_decision.ros.recorder:main',
             'player = exit_decision.ros.player:main',
+            'visualizer = exit_decision.ros.visualizer:main',
         ],
     },
 )

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from tqdm import tqdm
 
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.errors import PolicyError
+from exit_decision.errors import PolicyError, UsageError
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -78,7 +79,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         config.reward(args.reward_variant)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
     trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir)
-    policy = trainer.run(episodes, resume=args.resume)
+    policy = trainer.run(episodes, resume=args.resume, init=args.init)
     print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
     return 0
 
@@ -97,10 +98,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             if driver.partition(':')[2] and driver.partition(':')[2] not in sanity_drivers:
                 raise ConfigError(f'--driver {driver}: no such driver in reward_sanity.yaml; known: '
                                   f'{", ".join(sanity_drivers)}')
+    show = None
+    if args.show:
+        from exit_decision.visualization.episodes import ShowEpisodes
+        show = ShowEpisodes(args.out / 'show', min(args.show, args.episodes))
     table = evaluate_runs(config, policies=args.policy, drivers=args.driver, modes=modes, episodes=args.episodes,
-                          sanity_drivers=sanity_drivers,
+                          sanity_drivers=sanity_drivers, show=show,
                           seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
     print(table)
+    if show:
+        print(f'time-space diagrams and bird\'s-eye clips of the first {show.episodes} episode(s) of each run: '
+              f'{show.out_dir}')
     return 0
 
 
@@ -175,7 +183,8 @@ def cmd_stack(args: argparse.Namespace) -> int:
     run = run_stack(mode=args.mode, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
                     bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
                     switch_to=args.switch_to or None, switch_at_step=args.switch_at,
-                    config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''))
+                    config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
+                    visualizer=not args.no_visualizer)
     if run.mode_switch:
         print(run.mode_switch)
     if run.episodes:
@@ -202,6 +211,19 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_show(args: argparse.Namespace) -> int:
+    """Time-space diagrams and bird's-eye clips of a bag's episodes."""
+    if not args.bag.exists():   # before loading ROS: the commonest mistake, answered fast
+        raise UsageError(f'{args.bag}: no such bag (give the directory the recorder wrote)')
+    from exit_decision.ros.show import show_bag
+
+    config = load_project(args.config_dir)
+    for shown in show_bag(args.bag, config, args.out, episode=args.episode, start=args.start, end=args.end,
+                          speed=args.speed, fps=args.fps):
+        print(shown.summary())
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from exit_decision.benchmarks import bench_learning, bench_simulation
     config = load_project(args.config_dir, args.scenario_override, args.override)
@@ -221,6 +243,20 @@ def reference_driver(text: str) -> str:
     if name == 'sumo' and not colon or name == 'rule_based' and (not colon or variant):
         return text
     raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<driver of reward_sanity.yaml>')
+
+
+def number(kind: type, low: float, inclusive: bool = True):
+    """An argparse type: a finite ``kind`` number at or above ``low`` (above, if not ``inclusive``)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not math.isfinite(value) or value < low or value == low and not inclusive:
+            raise argparse.ArgumentTypeError(f'{text!r}: expected {"an integer" if kind is int else "a number"} '
+                                             f'{">=" if inclusive else ">"} {low:g}')
+        return value
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -251,6 +287,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument('--seed', type=int, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
     train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')
+    train.add_argument('--init', type=Path, default=None,
+                       help='a policy.pt whose network starts the RL phase (no pre-training)')
     train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
     train.set_defaults(func=cmd_train)
 
@@ -268,6 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
                           help='directory for the CSV and Markdown tables')
+    evaluate.add_argument('--show', type=number(int, 0), default=0, metavar='N',
+                          help='draw the first N episodes of each run into --out/show/: time-space diagram (PNG) '
+                               'and bird\'s-eye clip (GIF; MP4 too where ffmpeg exists)')
     evaluate.set_defaults(func=cmd_evaluate)
 
     stack = commands.add_parser('stack', help='run the ROS 2 stack (bridge, graph builder, decision node, '
@@ -282,6 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument('--seed', type=int, default=10_000)
     stack.add_argument('--bag', type=Path, default=None, help='bag directory (default bags/exit_decision_<time>)')
     stack.add_argument('--policy-dir', type=Path, default=None, help='default: the shipped policies/')
+    stack.add_argument('--no-visualizer', action='store_true',
+                       help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     stack.set_defaults(func=cmd_stack)
 
     replay = commands.add_parser('replay', help='re-run the policy on a bag and compare with its commands')
@@ -292,6 +335,20 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
     replay.add_argument('--policy-dir', type=Path, default=None)
     replay.set_defaults(func=cmd_replay)
+
+    show = commands.add_parser('show', help='time-space diagrams (PNG) and bird\'s-eye clips (GIF; MP4 where ffmpeg '
+                                            'exists) of the episodes of a bag')
+    show.add_argument('bag', type=Path, help='a bag directory written by the recorder (exit-decision stack)')
+    show.add_argument('--out', type=Path, default=None, help='output directory (default: <BAG>_show beside the bag)')
+    show.add_argument('--config-dir', type=Path, default=None, help='the config the bag was recorded with (the road)')
+    show.add_argument('--episode', type=number(int, 0), default=None, help='only this episode (default: every one)')
+    show.add_argument('--start', type=number(float, 0), default=None, help='[s] simulation time the window starts at')
+    show.add_argument('--end', type=number(float, 0), default=None, help='[s] simulation time the window ends at')
+    show.add_argument('--speed', type=number(float, 0, inclusive=False), default=5.0,
+                      help='clip speed, times real time (default 5)')
+    show.add_argument('--fps', type=number(float, 0, inclusive=False), default=10.0,
+                      help='clip frames per second (default 10)')
+    show.set_defaults(func=cmd_show)
 
     ablation = commands.add_parser('ablation', help='train + evaluate each step of config/ablation.yaml')
     ablation.add_argument('--config-dir', type=Path, default=None)
@@ -358,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, PolicyError) as error:
+    except (ConfigError, PolicyError, UsageError) as error:
         print(f'exit-decision: {error}', file=sys.stderr)
         return 2
 

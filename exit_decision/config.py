@@ -214,6 +214,7 @@ class EnvConfig(Strict):
     actions: ActionGridConfig
     shield: ShieldConfig
     rule_based: RuleBasedConfig
+    lane_planner: bool
     reward_variant: str
     mode: str
 

@@ -20,6 +20,7 @@ import numpy as np
 from gymnasium import spaces
 
 from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
 from exit_decision.episode_log import EpisodeLog
@@ -46,6 +47,7 @@ class ExitDecisionEnv(gym.Env):
                                           scenario.road.highway_speed_limit, scenario.road.lane_count)
         self.actions = ActionGrid(config.env.actions)
         self.shield = Shield.of(config, self.actions, self.sim.geometry)
+        self.planner = LanePlanner.of(config, self.shield)   # for learned policies; None: off
         self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
                                      scenario.step_length, scenario.emergency_braking_threshold)
         self.mode_weights = self.reward_fn.weights(config.mode(self.mode))

@@ -3,3 +3,8 @@
 
 class PolicyError(RuntimeError):
     """A policy file that is missing, unreadable, or does not fit; the message names the path."""
+
+
+class UsageError(ValueError):
+    """A file or option given on the command line that cannot be used; the message names the
+    value and what is allowed."""

@@ -44,6 +44,10 @@ class GraphCapacityError(RuntimeError):
     """More vehicles on the road than the graph has rows (raise graph.max_vehicles)."""
 
 
+class GraphInputError(ValueError):
+    """Vehicle states the graph cannot encode (a lane index outside the lane one-hot)."""
+
+
 @dataclass(frozen=True, slots=True, eq=False)   # arrays: compare fields explicitly
 class TrafficGraph:
     features: np.ndarray        # (N, F) float32
@@ -93,6 +97,9 @@ class GraphBuilder:
     def slots(self, vehicles: Sequence[VehicleState]) -> list[int]:
         """Slots of the given vehicles: kept ones stay, gone ones are freed, new ones assigned."""
         present = {v.vehicle_id for v in vehicles}
+        if len(vehicles) > self.config.max_vehicles:   # checked before any slot changes
+            raise GraphCapacityError(f'{len(vehicles)} vehicles on the road but graph.max_vehicles = '
+                                     f'{self.config.max_vehicles}')
         for vehicle_id in [vid for vid in self._slot_of if vid not in present]:
             self._free.append(self._slot_of.pop(vehicle_id))
         self._free.sort(reverse=True)  # pop() hands out the lowest free slot
@@ -109,8 +116,15 @@ class GraphBuilder:
         return result
 
     def build(self, vehicles: Sequence[VehicleState], snapshot: TrafficSnapshot | None = None) -> TrafficGraph:
-        """The graph of one step; ``snapshot``: these vehicles' TrafficSnapshot if the caller has one."""
+        """The graph of one step; ``snapshot``: these vehicles' TrafficSnapshot if the caller has one.
+
+        Input that cannot be encoded raises (GraphInputError, GraphCapacityError) before any
+        slot changes."""
         n = self.config.max_vehicles
+        lane = np.array([v.lane_index for v in vehicles], dtype=np.int64)
+        if len(lane) and (lane.min() < 0 or lane.max() >= self.lane_count):
+            raise GraphInputError(f'lane_index {int(lane.min() if lane.min() < 0 else lane.max())} is outside '
+                                  f'0..{self.lane_count - 1}')
         rows = np.asarray(self.slots(vehicles), dtype=np.intp)
         features = np.zeros((n, self.num_features), dtype=np.float32)
         adjacency = np.zeros((n, n), dtype=np.uint8)
@@ -119,7 +133,6 @@ class GraphBuilder:
         if len(vehicles):
             speed = np.array([v.speed for v in vehicles])
             position = np.array([v.position for v in vehicles])
-            lane = np.array([v.lane_index for v in vehicles])
             intention = np.array([v.intention for v in vehicles])
             is_cav = np.array([v.controlled for v in vehicles])
             features[rows, 0] = speed / self.speed_scale

@@ -4,7 +4,8 @@ A checkpoint is self-describing: the network's state_dict plus plain-data metada
 shape, action grid, decision interval, feature set, N, mode, algorithm, seed, git revision,
 training summary), so it loads with ``torch.load(weights_only=True)`` and rebuilds its own
 network. ``GraphPolicy.q_values`` runs all rows of a graph in one forward pass;
-``PolicyController`` chooses, per CAV, the best action the shield allows.
+``PolicyController`` chooses, per CAV, the best action the shield allows (the lane planner,
+when configured, driving the CAVs that are off their route).
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numpy as np
 import torch
 
 from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Decision, Shield
 from exit_decision.config import ActionGridConfig, ConfigError
 from exit_decision.errors import PolicyError
@@ -109,33 +111,40 @@ def load_policy(path: Path | str) -> GraphPolicy:
 
 
 def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapshot, q: np.ndarray,
-                    explore: Callable[[np.ndarray], int] | None = None) -> Decision:
+                    explore: Callable[[np.ndarray], int] | None = None,
+                    planner: LanePlanner | None = None) -> Decision:
     """Each CAV row's best allowed action by its Q values, under the shield (front to back);
     ``explore``: called with the mask for a CAV that explores instead (returns an action or
-    None to stay greedy)."""
+    None to stay greedy); ``planner``: drives CAVs off their route and keeps the others on it."""
     row_of = graph.row_of()
 
     def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
-        chosen = explore(mask) if explore is not None else None
+        chosen = planner.choose(vehicle, mask, snapshot) if planner is not None else None
+        if chosen is None and explore is not None:
+            chosen = explore(mask)
         if chosen is not None:
             return chosen
         return int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
     return shield.decide(snapshot, graph.cav_ids(), choose,
-                         preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()))
+                         preferred=lambda vehicle: int(q[row_of[vehicle.vehicle_id]].argmax()),
+                         restrict=planner.restrict if planner is not None else None)
 
 
 class PolicyController:
     """Greedy decisions of a policy under the shield (what evaluation and the node run);
     ``weights``: the mode a conditioned policy decides for (changeable between decisions)."""
 
-    def __init__(self, policy: GraphPolicy, shield: Shield, weights: np.ndarray | None = None):
+    def __init__(self, policy: GraphPolicy, shield: Shield, weights: np.ndarray | None = None,
+                 planner: LanePlanner | None = None):
         torch.set_num_threads(1)   # one small forward per decision: threads only add contention
         self.policy = policy
         self.shield = shield
+        self.planner = planner
         self.name = policy.label
         if policy.conditioned and weights is None:
             raise PolicyError(f'{policy.path}: a mode-conditioned policy needs the mode weights to decide')
         self.weights = weights
 
     def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
-        return greedy_decision(self.shield, graph, TrafficSnapshot(vehicles), self.policy.q_values(graph, self.weights))
+        return greedy_decision(self.shield, graph, TrafficSnapshot(vehicles), self.policy.q_values(graph, self.weights),
+                               planner=self.planner)

@@ -14,6 +14,19 @@ VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
 INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT = -1, 0, 1
 
 
+def vehicle_id_of(vehicle_class: str, serial: int) -> str:
+    """The id of the ``serial``-th vehicle (from 0) of a class in an episode: ``CAV_3``."""
+    return f'{vehicle_class}_{serial}'
+
+
+def parse_vehicle_id(vehicle_id: str) -> tuple[str, int] | None:
+    """(class, serial) of an id made by ``vehicle_id_of``; None for any other string."""
+    name, _, serial = vehicle_id.rpartition('_')
+    if name not in VEHICLE_CLASSES or not serial.isascii() or not serial.isdigit() or str(int(serial)) != serial:
+        return None
+    return name, int(serial)
+
+
 @dataclass(frozen=True, slots=True)
 class VehicleState:
     """One vehicle at one step; mirrors exit_decision_msgs/VehicleState."""

@@ -2,11 +2,13 @@
 
     ros2 launch exit_decision exit_decision.launch.py mode:=AGGI episodes:=1
 
-The bridge, graph builder and decision node, and a recorder writing a bag. On machines
-without `launch`, `exit-decision stack` does the same (and switches the mode mid-run).
+The bridge, graph builder and decision node, a recorder writing a bag, and the visualizer
+(markers on /exit_decision/markers for RViz/Foxglove; `visualizer:=false` leaves it out). On
+machines without `launch`, `exit-decision stack` does the same (and switches the mode mid-run).
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -19,6 +21,7 @@ def generate_launch_description():
         'seed': ('10000', 'seed of the first episode'),
         'timing': ('synchronous', 'synchronous or realtime'),
         'bag_path': ('bags/exit_decision', 'bag directory (must not exist)'),
+        'visualizer': ('true', 'publish the scene as markers on /exit_decision/markers (true or false)'),
     }
     config = {name: LaunchConfiguration(name) for name in arguments}
     return LaunchDescription([
@@ -29,6 +32,8 @@ def generate_launch_description():
         Node(package='exit_decision', executable='graph_builder', name='graph_builder'),
         Node(package='exit_decision', executable='decision_node', name='decision_node',
              parameters=[{'mode': config['mode'], 'algorithm': config['algorithm']}]),
+        Node(package='exit_decision', executable='visualizer', name='visualizer',
+             condition=IfCondition(config['visualizer'])),
         Node(package='exit_decision', executable='sumo_bridge', name='sumo_bridge',
              parameters=[{'episodes': config['episodes'], 'seed': config['seed'], 'timing': config['timing']}]),
     ])

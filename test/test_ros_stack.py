@@ -1,15 +1,20 @@
 """Integration tests of the ROS 2 stack: nodes in their own processes, on loopback only."""
+import dataclasses
+import math
+import time
+
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from exit_decision_msgs.msg import CavCommand, CavCommandArray, TrafficGraph as GraphMsg, VehicleStateArray
+from exit_decision_msgs.msg import (CavCommand, CavCommandArray, EpisodeEvent, TrafficGraph as GraphMsg,
+                                    VehicleStateArray)
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.parameter import parameter_value_to_python
 
 from exit_decision.config import load_project
 from exit_decision.ros.bags import read_messages
-from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC,
-                                      STREAM_QOS, ProbeNode)
+from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
+                                      STATES_TOPIC, STREAM_QOS, ProbeNode)
 from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
 
@@ -130,6 +135,13 @@ def test_missing_policy_fails_at_start_naming_the_path(setup, tmp_path):
     assert f'{tmp_path}/gqn_AGGI/policy.pt: no such policy file' in (tmp_path / 'decision.log').read_text()
 
 
+def start_episode(test: ProbeNode, episode: int):
+    """Play the bridge's part: an EVENT_STARTED (transient local, so a node started later gets it)."""
+    events = test.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
+    events.publish(EpisodeEvent(episode=episode, event=EpisodeEvent.EVENT_STARTED))
+    return events
+
+
 def test_malformed_messages_are_rejected_and_counted(setup):
     root = setup['root']
     decision = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
@@ -139,12 +151,14 @@ def test_malformed_messages_are_rejected_and_counted(setup):
         counters = diagnostics_of(test, 'decision_node')
         graphs = test.node.create_publisher(GraphMsg, GRAPH_TOPIC, STREAM_QOS)
         states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+        start_episode(test, 0)
         assert test.spin_until(lambda: graphs.get_subscription_count() and states.get_subscription_count(), 30)
+        test.spin_until(lambda: False, 0.5)   # let the node's side of the connections match too
         wrong_n = GraphMsg(episode=0, step=0, num_nodes=3, num_features=20, vehicle_ids=['', '', ''])
         wrong_n.features = np.zeros(60, np.float32)
         wrong_n.adjacency = np.zeros(9, np.uint8).tobytes()
         wrong_n.cav_mask = np.zeros(3, np.uint8).tobytes()
-        states.publish(VehicleStateArray(episode=0, step=0))
+        states.publish(VehicleStateArray(episode=0, step=0, step_length=0.1))
         graphs.publish(wrong_n)
         assert test.spin_until(lambda: counters.get('rejected_graphs', 0) >= 1, 20), counters
         answered = []
@@ -154,9 +168,9 @@ def test_malformed_messages_are_rejected_and_counted(setup):
             empty.features = np.zeros(60 * 20, np.float32)
             empty.adjacency = np.zeros(3600, np.uint8).tobytes()
             empty.cav_mask = np.zeros(60, np.uint8).tobytes()
-            states.publish(VehicleStateArray(episode=0, step=step))
+            states.publish(VehicleStateArray(episode=0, step=step, step_length=0.1))
             graphs.publish(empty)
-        assert test.spin_until(lambda: counters.get('rejected_stale_graphs', 0) >= 1, 20), counters
+        assert test.spin_until(lambda: counters.get('rejected_out_of_sequence_graphs', 0) >= 1, 20), counters
         assert [m.step for m in answered] == [10], 'the valid graph is answered, the late one is not'
         assert decision.poll() is None, 'the node is still running'
     finally:
@@ -205,6 +219,7 @@ def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
     try:
         publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
         assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
+        test.spin_until(lambda: False, 0.5)   # matched here first: let the recorder's side match too
         for step in range(200):
             publisher.publish(CavCommandArray(step=step, mode='AGGI'))
         test.spin_until(lambda: False, 1.0)
@@ -232,7 +247,13 @@ def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
         publisher.publish(CavCommandArray(episode=0, step=0, commands=[
             CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=1.0)]))
         assert test.spin_until(lambda: counters.get('rejected_commands', 0) >= 1, 20), counters
-        assert test.spin_until(lambda: seen[-1].step > 0, 20), 'the bridge steps on'
+        assert test.spin_until(lambda: seen[-1].step == 5, 20), 'the bridge steps on to the next decision'
+        for acceleration in (math.nan, 3e38):      # the first is rejected whole, the bridge waits on
+            publisher.publish(CavCommandArray(episode=0, step=5, commands=[
+                CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=acceleration)]))
+        assert test.spin_until(lambda: seen[-1].step > 5, 20), 'the finite one is taken'
+        assert test.spin_until(lambda: counters.get('clamped_commands', 0) == 1, 5), counters
+        assert counters['rejected_command_messages'] == 1 and counters.get('command_timeouts', 0) == 0, counters
         assert bridge.poll() is None
     finally:
         test.close()
@@ -271,3 +292,99 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
     finally:
         test.close()
         stop(player)
+
+
+def bad_messages(latest: VehicleStateArray) -> list:
+    """The fuzzer's findings (issue 12), aimed at what the stack is doing now: states for the
+    next step with a bad field or sequence number, commands with a bad step or value."""
+    from exit_decision.ros.conversions import states_from_msg, states_to_msg
+    from conftest import make_vehicle
+
+    episode, step = latest.episode, latest.step
+    vehicles = states_from_msg(latest) or [make_vehicle('HV1_0', position=20.0)]
+    states = [states_to_msg([dataclasses.replace(vehicles[0], **change), *vehicles[1:]], episode=episode,
+                            step=step + 1, step_length=0.1, frame_id='fuzz')
+              for change in ({'lane_index': 127}, {'lane_index': -128}, {'lane_index': 3}, {'lane_index': -1},
+                             {'speed': math.nan}, {'position': 3e38})]
+    states[-1].vehicles[0].vehicle_class = 9                  # no such class
+    states += [states_to_msg(vehicles, episode=episode + 1000, step=step + 1, step_length=0.1, frame_id='fuzz'),
+               states_to_msg(vehicles, episode=episode, step=2**32 - 1, step_length=0.1, frame_id='fuzz')]
+    cav = next((v.vehicle_id for v in vehicles if v.controlled), 'CAV_0')
+    commands = [CavCommandArray(episode=episode, step=2**32 - 1, algorithm='fuzz',
+                                commands=[CavCommand(vehicle_id=cav, acceleration=1.0)]),
+                CavCommandArray(episode=episode + 1000, step=step, algorithm='fuzz'),
+                CavCommandArray(episode=episode, step=step - step % 5, algorithm='fuzz',
+                                commands=[CavCommand(vehicle_id=cav, acceleration=math.nan)]),
+                CavCommandArray(episode=episode, step=step - step % 5, algorithm='fuzz',
+                                commands=[CavCommand(vehicle_id=cav, lane_change=7, acceleration=1.0)])]
+    return states + commands
+
+
+def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
+    """The issue's bad messages, and a flood of them on the states topic (300 msg/s), sent to a
+    running synchronous stack: every node lives, counts what it rejected, and the stack decides
+    on every decision step with no command timeout."""
+    root, config_dir = setup['root'], setup['config_dir']
+    test = ProbeNode('fuzz_test')
+    counters = {name: diagnostics_of(test, name) for name in ('sumo_bridge', 'graph_builder', 'decision_node')}
+    latest, ended = [], []
+    test.node.create_subscription(VehicleStateArray, STATES_TOPIC,
+                                  lambda m: latest.append(m) if m.header.frame_id != 'fuzz' else None, STREAM_QOS)
+    test.node.create_subscription(EpisodeEvent, EPISODE_TOPIC,
+                                  lambda m: ended.append(m) if m.event == EpisodeEvent.EVENT_ENDED else None,
+                                  EVENT_QOS)
+    states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+    commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+    nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / 'graph_fuzz.log'),
+             start_node('decision_node', {'config_dir': config_dir, 'policy_dir': setup['policies']},
+                        root / 'decision_fuzz.log')]
+    nodes.append(start_node('sumo_bridge', {'config_dir': config_dir, 'episodes': 1, 'wait_for_subscribers': 3},
+                            root / 'bridge_fuzz.log'))
+    try:
+        assert test.spin_until(lambda: latest, 90), 'the stack starts'
+        sent, started = 0, time.monotonic()
+        while not ended and time.monotonic() - started < 150:
+            batch = bad_messages(latest[-1])
+            for _ in range(min(len(batch), int((time.monotonic() - started) * 300) - sent)):
+                msg = batch[sent % len(batch)]
+                (states if isinstance(msg, VehicleStateArray) else commands).publish(msg)
+                sent += 1
+            test.executor.spin_once(timeout_sec=0.002)
+        assert ended, 'the episode ends'
+        test.spin_until(lambda: False, 1.5)                   # the last diagnostics
+        assert all(process.poll() is None for process in nodes[:2]), 'graph builder and decision node live'
+        assert nodes[2].wait(30) == 0
+        steps = ended[0].steps
+        bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
+        assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {bridge}'
+        assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
+        assert graph['graphs'] == steps + 1, 'a graph of every state of the bridge'
+        assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
+        assert decision['rejected_out_of_sequence_states'] > 0, decision
+    finally:
+        test.close()
+        for process in nodes:
+            stop(process)
+
+
+@pytest.mark.parametrize('node, parameters, expected', [
+    ('sumo_bridge', {'timing': 'fast'}, "parameter timing: 'fast' is not allowed; allowed: synchronous | realtime"),
+    ('sumo_bridge', {'command_timeout': 0.0}, 'parameter command_timeout: 0.0 is not allowed; allowed: a number in'),
+    ('decision_node', {'mode': 3}, 'parameter mode: 3 is not allowed; allowed: AGGI | AGGP | CONI | CONP'),
+    ('player', {}, 'parameter bag_path: not given'),
+    ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
+    ('player', {'bag_path': 'CORRUPT'}, 'not a readable bag'),
+])
+def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, node, parameters, expected):
+    if parameters.get('bag_path') == 'CORRUPT':
+        (tmp_path / 'bag').mkdir()
+        (tmp_path / 'bag' / 'metadata.yaml').write_text('rosbag2_bagfile_information: [not, a, bag')
+        parameters = {'bag_path': str(tmp_path / 'bag')}
+    if node != 'player':
+        parameters = {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'], **parameters}
+        if node == 'sumo_bridge':
+            del parameters['policy_dir']
+    log = tmp_path / 'node.log'
+    assert start_node(node, parameters, log).wait(60) == 1
+    text = log.read_text()
+    assert expected in text and len(text.strip().splitlines()) == 1, text

@@ -112,3 +112,34 @@ def test_a_snapshot_with_an_added_vehicle_answers_like_one_built_with_it():
         for position in (0.0, 44.0, 45.0, 52.0, 200.0):
             assert grown.neighbours(('Highway', lane), position, 5.0) == built.neighbours(('Highway', lane), position, 5.0)
     assert grown.by_id['new'] is added and len(grown.vehicles) == 13
+
+
+def test_lane_planner_keeps_the_policy_on_its_route_and_drives_cavs_off_it(project_config, geometry):
+    from exit_decision.agents.lane_planner import LanePlanner
+    shield = shield_with(project_config, geometry)
+    planner = LanePlanner.of(project_config, shield)
+    before_exit0 = make_vehicle('cav', 'CAV', lane=1, position=50.0)
+    snapshot = TrafficSnapshot([before_exit0])
+    # on its route before Exit_0: the policy decides, but may not change into Exit_0's lane
+    assert planner.choose(before_exit0, shield.mask(before_exit0, snapshot), snapshot) is None
+    assert lanes_allowed(shield, planner.restrict(before_exit0, shield.mask(before_exit0, snapshot))) == {0, 1}
+    # after Exit_0, lane 0 is the route: no change to the left
+    in_lane0 = make_vehicle('cav', 'CAV', lane=0, position=geometry.merge_done_at['Highway_0'] + 20.0)
+    snapshot = TrafficSnapshot([in_lane0])
+    assert lanes_allowed(shield, planner.restrict(in_lane0, shield.mask(in_lane0, snapshot))) == {0}
+    # off its route (lane 0 before Exit_0): the rule-based driver's lane plan moves it left
+    off_route = make_vehicle('cav', 'CAV', lane=0, position=50.0)
+    snapshot = TrafficSnapshot([off_route])
+    mask = shield.mask(off_route, snapshot)
+    assert planner.restrict(off_route, mask) is mask
+    chosen = planner.choose(off_route, mask, snapshot)
+    assert chosen is not None and shield.grid.lane_change_of[chosen] == 1
+    # past Exit_1's diverge the task is decided: any lane, the policy decides
+    past = make_vehicle('cav', 'CAV', lane=1, position=geometry.diverge_at['Highway_1'] + 10.0)
+    assert planner.on_route(past) and planner.on_route(past, 2)
+
+
+def test_lane_planner_is_a_config_switch(project_config, geometry):
+    from exit_decision.agents.lane_planner import LanePlanner
+    off = project_config.model_copy(update={'env': project_config.env.model_copy(update={'lane_planner': False})})
+    assert LanePlanner.of(off, shield_with(project_config, geometry)) is None

@@ -44,11 +44,11 @@ class RuleBasedDriver:
                    parameters or env.config.env.rule_based)
 
     def target_lane(self, vehicle: VehicleState) -> int:
-        if vehicle.position < self.geometry.merge_done_at['Highway_0']:
-            return 1
+        """The route lane nearest to lane 0 (before Exit_0: lane 1, one change from the exit
+        lane to come); past Exit_1's diverge the lane held (the task is decided)."""
         if vehicle.position < self.geometry.diverge_at['Highway_1']:
-            return 0
-        return vehicle.lane_index      # past Exit_1: the task is decided
+            return min(self.geometry.route_lanes(vehicle.position))
+        return vehicle.lane_index
 
     def desired_speed(self, vehicle: VehicleState) -> float:
         limit = vehicle.lane_speed_limit

@@ -119,14 +119,18 @@ class Shield:
     # --- a decision for all CAVs ---------------------------------------------------------------
 
     def decide(self, snapshot: TrafficSnapshot, cav_ids: Sequence[str], choose: Chooser,
-               preferred: Callable[[VehicleState], int] | None = None) -> Decision:
+               preferred: Callable[[VehicleState], int] | None = None,
+               restrict: Callable[[VehicleState, np.ndarray], np.ndarray] | None = None) -> Decision:
         """Masks and choices for the given CAVs, front to back, reserving chosen gaps.
 
-        ``preferred`` (optional) is the choice without masks, to count overrides."""
+        ``preferred`` (optional) is the choice without masks, to count overrides; ``restrict``
+        (optional) narrows a CAV's mask further (the lane planner's route), never to nothing."""
         present = [snapshot.by_id[vid] for vid in cav_ids]
         actions, masks, overridden = {}, {}, 0
         for vehicle in sorted(present, key=lambda v: -v.position):
             mask = self.mask(vehicle, snapshot)
+            if restrict is not None:
+                mask = restrict(vehicle, mask)
             action = choose(vehicle, mask)
             if not mask[action]:
                 raise ValueError(f'{vehicle.vehicle_id}: the chooser picked masked action {action}')

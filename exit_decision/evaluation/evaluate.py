@@ -14,6 +14,7 @@ from exit_decision.graph import TrafficGraph
 from exit_decision.policy import GraphPolicy, PolicyController
 from exit_decision.reward import scalar, weight_input
 from exit_decision.traffic import VehicleState
+from exit_decision.visualization.episodes import EpisodeRecorder, ShowEpisodes
 
 
 class Controller(Protocol):
@@ -30,9 +31,12 @@ class EvaluationResult:
 
 
 def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
-                result: EvaluationResult) -> dict[str, float]:
-    """One episode; ``controller`` None means the env's CAVs are driven by SUMO."""
+                result: EvaluationResult, recorder: EpisodeRecorder | None = None) -> dict[str, float]:
+    """One episode; ``controller`` None means the env's CAVs are driven by SUMO; ``recorder``
+    (evaluate --show) takes every step and decision and draws the episode at its end."""
     env.reset(seed=seed)
+    if recorder is not None:
+        recorder.start(env)
     keep = env.actions.index(0, 0.0)
     if result.action_counts is None:
         result.action_counts = np.zeros(env.actions.size, dtype=np.int64)
@@ -47,19 +51,27 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
                 result.action_counts[index] += 1
             result.overrides += decision.overridden
             result.decisions += len(decision.actions)
-        _, _, terminated, truncated, _ = env.step(action)
+            if recorder is not None:
+                recorder.decide(env.commands(action), decision.overridden)
+        _, _, terminated, truncated, info = env.step(action)
+        if recorder is not None:
+            recorder.steps(info['step_results'])
         done = terminated or truncated
+    if recorder is not None:
+        recorder.finish()
     return env.episode_log.metrics()
 
 
 def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
-                 result: EvaluationResult | None = None, desc: str | None = None) -> list[dict]:
+                 result: EvaluationResult | None = None, desc: str | None = None,
+                 show: ShowEpisodes | None = None) -> list[dict]:
     """Per seed: the episode's metrics and its reward vector (to score it under any mode);
-    ``result`` collects action counts and shield overrides; ``desc``: a progress bar."""
+    ``result`` collects action counts and shield overrides; ``desc``: a progress bar; ``show``:
+    draw the first episodes."""
     result = result if result is not None else EvaluationResult()
     out = []
-    for seed in tqdm(seeds, desc=desc, unit='ep', disable=desc is None):
-        metrics = run_episode(env, controller, seed, result)
+    for index, seed in enumerate(tqdm(seeds, desc=desc, unit='ep', disable=desc is None)):
+        metrics = run_episode(env, controller, seed, result, show and show.recorder(index, seed))
         out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
     return out
 
@@ -78,7 +90,8 @@ def scored_episodes(episodes: list[dict], weights) -> list[dict]:
             for e in episodes]
 
 
-def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[str], seeds: list[int]) -> list[EvaluatedRun]:
+def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[str], seeds: list[int],
+                    show: ShowEpisodes | None = None) -> list[EvaluatedRun]:
     """A policy on the seeds, scored under each mode: a conditioned one acts at each mode's
     weights, a per-mode one acts once (for its own mode)."""
     config = env.config
@@ -90,7 +103,9 @@ def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[s
         if policy.conditioned or played is None:
             result = EvaluationResult()
             weights = weight_input(config.mode(mode)) if policy.conditioned else None
-            played = run_episodes(env, PolicyController(policy, env.shield, weights), seeds, result,
-                                  desc=f'{name} at {mode}' if policy.conditioned else name)
+            played = run_episodes(env, PolicyController(policy, env.shield, weights, env.planner), seeds, result,
+                                  desc=f'{name} at {mode}' if policy.conditioned else name,
+                                  show=show and show.named(f'{name}_{mode}' if policy.conditioned else name,
+                                                           mode if policy.conditioned else policy.metadata['mode']))
         runs.append(EvaluatedRun(f'{name}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result))
     return runs

@@ -17,6 +17,7 @@ from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.policy import CONDITIONED_SUFFIX, load_policy
 from exit_decision.tables import read_rows, write_rows
+from exit_decision.visualization.episodes import ShowEpisodes
 
 
 REFERENCE_DRIVERS = ('sumo', 'rule_based')
@@ -27,7 +28,7 @@ PAIRED_METRICS = ('reward', 'v_AVs', 'p_CAV', 'p_collision_CAV', 'N_braking')
 
 def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequence[str], modes: Sequence[str],
                   episodes: int, seed: int, out_dir: Path, command: str,
-                  sanity_drivers: dict[str, RuleBasedConfig] | None = None) -> str:
+                  sanity_drivers: dict[str, RuleBasedConfig] | None = None, show: ShowEpisodes | None = None) -> str:
     """Evaluate each policy and reference driver on seeds seed..seed+episodes-1, scored under
     each named mode's reward.
 
@@ -36,7 +37,8 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
     policy drives at each mode's weights. Writes ``<run>_<mode>.csv`` (per episode; ``reward``
     = the episode's global scalar return under that mode, unscaled), ``<run>_<mode>_actions.csv``,
     ``summary.md`` / ``summary.csv`` (mean and std), and ``comparison.md`` / ``comparison.csv``
-    (every run against the neutral teacher under the same mode, paired over seeds)."""
+    (every run against the neutral teacher under the same mode, paired over seeds). ``show``:
+    draw the first episodes of each run (time-space diagram, bird's-eye clip)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     seeds = list(range(seed, seed + episodes))
     for mode in modes:
@@ -49,7 +51,8 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         try:
             controller = None if name == 'sumo' else RuleBasedDriver.for_env(env, parameters)
             result = EvaluationResult()
-            played = run_episodes(env, controller, seeds, result, desc=driver)
+            played = run_episodes(env, controller, seeds, result, desc=driver,
+                                  show=show and show.named(driver.replace(':', '_')))
         finally:
             env.close()
         label = driver.replace(':', '_')
@@ -58,7 +61,7 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
     env = ExitDecisionEnv(config, mode=modes[0])
     try:
         for path in policies:
-            runs += evaluate_policy(env, load_policy(path), modes, seeds)
+            runs += evaluate_policy(env, load_policy(path), modes, seeds, show)
     finally:
         env.close()
     summaries = []

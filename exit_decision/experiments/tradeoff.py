@@ -44,7 +44,7 @@ def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out
     rows = []
     try:
         for name, weights in weight_points(config).items():
-            episodes = run_episodes(env, PolicyController(policy, env.shield, weights), seeds, desc=name)
+            episodes = run_episodes(env, PolicyController(policy, env.shield, weights, env.planner), seeds, desc=name)
             multipliers = weights_of_input(weights)
             rows.append({'point': name, **{f'w{i}': float(w) for i, w in enumerate(weights)},
                          **{k: float(np.nanmean([e[k] for e in episodes]))

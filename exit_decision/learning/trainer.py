@@ -40,11 +40,12 @@ from tqdm import tqdm
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
+from exit_decision.errors import PolicyError
 from exit_decision.learning.agent import Algorithm, GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import NetworkShape
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint
-from exit_decision.policy import git_revision, greedy_decision, q_values, save_policy
+from exit_decision.policy import git_revision, greedy_decision, load_policy, q_values, save_policy
 from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input, weights_of_input
 from exit_decision.tables import append_row
 
@@ -165,7 +166,7 @@ class Trainer:
             else:
                 q = q_values(self.agent.online, graph, weights)
                 decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (
-                    self.explore(mask) if self.rng.random() < epsilon else None))
+                    self.explore(mask) if self.rng.random() < epsilon else None), planner=env.planner)
             actions, masks = self.decision_arrays(graph, decision)
             _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, keep))
             own, shared = info['reward_vector']
@@ -190,12 +191,14 @@ class Trainer:
 
     def final_record(self) -> DecisionRecord:
         """The last state, with the masks its CAVs would choose under (for bootstrapping)."""
-        graph = self.env.graph
+        graph, planner = self.env.graph, self.env.planner
         snapshot = self.env.sim.snapshot
         masks = np.zeros((graph.num_nodes, self.grid.size), bool)
         for vehicle_id, row in graph.row_of().items():
             if graph.cav_mask[row]:
-                masks[row] = self.shield.mask(snapshot.by_id[vehicle_id], snapshot)
+                vehicle = snapshot.by_id[vehicle_id]
+                mask = self.shield.mask(vehicle, snapshot)
+                masks[row] = planner.restrict(vehicle, mask) if planner is not None else mask
         return DecisionRecord(graph, np.full(graph.num_nodes, NO_ACTION, np.int64), masks)
 
     # --- learning ---------------------------------------------------------------------------
@@ -300,14 +303,26 @@ class Trainer:
 
     # --- the whole run ------------------------------------------------------------------------
 
-    def run(self, episodes: int, resume: Path | None = None, progress: bool = True) -> Path:
+    def load_network(self, path: Path) -> None:
+        """Start from a policy checkpoint's network (online and target) instead of pre-training:
+        a pre-trained policy fine-tuned under another setting (e.g. the lane planner)."""
+        policy = load_policy(path)
+        if policy.network.shape != self.shape:
+            raise PolicyError(f'{path}: its network ({policy.network.shape}) is not this run\'s ({self.shape})')
+        self.agent.online.load_state_dict(policy.network.state_dict())
+        self.agent.target.load_state_dict(policy.network.state_dict())
+
+    def run(self, episodes: int, resume: Path | None = None, progress: bool = True,
+            init: Path | None = None) -> Path:
+        """Demonstrations, pre-training (skipped when resuming or starting from ``init``'s
+        network), then the RL episodes with validation; returns the kept policy.pt."""
         if resume is None and (self.out_dir / 'training.csv').exists():
             raise FileExistsError(f'{self.out_dir} holds an earlier run (training.csv): resume it with '
                                   f'--resume {self.out_dir / "last.pt"}, or choose another --out')
         self.out_dir.mkdir(parents=True, exist_ok=True)
         (self.out_dir / 'config.json').write_text(json.dumps(
             {'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed, 'episodes': episodes,
-             'config': self.config.model_dump()}, indent=2))
+             'init': None if init is None else str(init), 'config': self.config.model_dump()}, indent=2))
         clock = {'start': time.monotonic()}
         demo = self.training.demonstrations
         for i in tqdm(range(demo.episodes), desc='demonstrations', unit='ep', disable=not progress, leave=False):
@@ -315,8 +330,10 @@ class Trainer:
                 self.demos.add(transition)
         if resume is not None:
             self.load_state(resume)
+        elif init is not None:
+            self.load_network(init)
         clock['demonstrations'] = time.monotonic()
-        if resume is None and len(self.demos):
+        if resume is None and init is None and len(self.demos):
             self.pretrain()
         clock['pretraining'] = time.monotonic()
         self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
@@ -341,17 +358,19 @@ class Trainer:
                 self.record_validation(path, per_mode)
         self.save_state()
         self.env.close()
-        self.write_timing(clock, episodes, resume is not None)
+        self.write_timing(clock, episodes, 'resumed: this invocation only' if resume is not None else
+                          f'demonstrations, RL and validation; network from {init}, not pre-trained'
+                          if init is not None else 'demonstrations, pre-training, RL and validation')
         return self.out_dir / 'policy.pt'
 
-    def write_timing(self, clock: dict[str, float], episodes: int, resumed: bool) -> None:
+    def write_timing(self, clock: dict[str, float], episodes: int, note: str) -> None:
         """timing.json: wall time of the run's phases (this invocation; a resumed run's own)."""
         end = time.monotonic()
         (self.out_dir / 'timing.json').write_text(json.dumps({
             'demonstrations_s': clock['demonstrations'] - clock['start'],
             'pretraining_s': clock['pretraining'] - clock['demonstrations'],
             'rl_s': end - clock['pretraining'], 'total_s': end - clock['start'], 'episodes': episodes,
-            'note': 'resumed: this invocation only' if resumed else 'demonstrations, pre-training, RL and validation'},
+            'note': note},
             indent=2))
 
     def train_episode(self) -> dict[str, float]:

@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC,
-                                      EVENT_QOS, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS)
+                                      EVENT_QOS, GRAPH_TOPIC, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS)
 
 #: what the recorder records by default, with the types
 DEFAULT_TOPICS = {
@@ -28,6 +28,7 @@ DEFAULT_TOPICS = {
     EPISODE_TOPIC: 'exit_decision_msgs/msg/EpisodeEvent',
     CLOCK_TOPIC: 'rosgraph_msgs/msg/Clock',
     '/parameter_events': 'rcl_interfaces/msg/ParameterEvent',
+    MARKERS_TOPIC: 'visualization_msgs/msg/MarkerArray',   # the visualizer's scene: a bag opens in Foxglove/RViz
 }
 KNOWN_TOPICS = {**DEFAULT_TOPICS, DIAGNOSTICS_TOPIC: 'diagnostic_msgs/msg/DiagnosticArray'}
 

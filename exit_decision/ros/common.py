@@ -1,15 +1,26 @@
 """What the nodes share: topic names, QoS choices, parameters, diagnostics, the main wrapper.
 
-QoS, on purpose:
-- states, graph, commands: reliable, keep last 100. In synchronous mode every message of a
-  step matters (a lost command stalls the bridge until its timeout) and the stack runs on
-  one machine, so reliability is cheap; depth 100 (10 s of simulation) lets a subscriber
-  that falls behind for a while (a recorder on a loaded machine) catch up without losses.
-- the recorder subscribes with depth 1000 for the same reason.
-- episode events: reliable, transient local, depth 50: a late subscriber (the launcher, a
-  recorder started later) still gets the metrics of recent episodes.
+QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
+- vehicle_states, traffic_graph, cav_commands: reliable (in synchronous mode every message
+  of a step matters: a lost command stalls the bridge until its timeout), keep last 100 on
+  both sides. A publisher's 100 is its resend history: a reader that falls behind (a
+  recorder sharing 2 cores with training: with 10 it lost 30% of the states) catches up
+  without losses. A node's 100 is 10 s of simulation at real time: it absorbs a stall (the
+  decision node's first policy call) without losses, yet a queue stays short enough that
+  what a node takes from it is still useful: keep-last drops the *oldest*, and a node that
+  is permanently slower than the messages coming in (a flood) would, with a deeper queue,
+  only answer later (tried: 1000 made answers arrive after the bridge's 1 s timeout and
+  lost as many). What keeps a node ahead of a flood is that it rejects what cannot follow
+  its episode and step before converting it. Messages lost anyway are counted
+  (``dropped_<topic>``, from the publisher's sequence numbers, while a topic has one
+  publisher: rclpy does not say which of several publishers a message came from), and the
+  steps missing between two a node took as ``skipped_*``.
+- the recorder subscribes with depth 1000: it must keep everything, and writing is cheap.
+- episode_events: reliable, transient local, depth 50: a late subscriber (the launcher, a
+  node restarted mid-episode, a recorder started later) still gets the episode that is
+  running (its EVENT_STARTED starts the node's sequence checks) and the metrics of recent ones.
 - /clock: best effort, keep last 1 (ROS 2's clock QoS): only the newest time matters.
-- diagnostics: reliable, keep last 10, the /diagnostics convention.
+- /diagnostics: reliable, keep last 10, the /diagnostics convention (one status a second).
 """
 from __future__ import annotations
 
@@ -24,6 +35,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rcl_interfaces.srv import SetParameters
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
@@ -39,8 +51,12 @@ COMMANDS_TOPIC = '/exit_decision/cav_commands'
 EPISODE_TOPIC = '/exit_decision/episode_events'
 CLOCK_TOPIC = '/clock'
 DIAGNOSTICS_TOPIC = '/diagnostics'
+MARKERS_TOPIC = '/exit_decision/markers'
 
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
+#: what the nodes subscribe to states, graph and commands with: the publishers' choice (see above)
+STATES_QOS = GRAPH_QOS = COMMANDS_QOS = STREAM_QOS
+DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10)
 RECORDER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
 EVENT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=50,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -60,11 +76,49 @@ def describe(description: str, *, read_only: bool = False, integer_range: tuple[
     return descriptor
 
 
+class ParameterError(ValueError):
+    """A start-up parameter value a node cannot use; the text names the parameter and what is allowed."""
+
+
+def allowed_values(descriptor: ParameterDescriptor, default) -> str:
+    """What a parameter's descriptor allows, in words."""
+    if descriptor.additional_constraints:
+        return descriptor.additional_constraints
+    if descriptor.integer_range:
+        r = descriptor.integer_range[0]
+        return f'an integer in {r.from_value}..{r.to_value}'
+    if descriptor.floating_point_range:
+        r = descriptor.floating_point_range[0]
+        return f'a number in [{r.from_value:g}, {r.to_value:g}]'
+    kind = {bool: 'true or false', str: 'a string', int: 'an integer', float: 'a number'}
+    if isinstance(default, list):
+        return f'a list of {kind.get(type(default[0]), "values") if default else "values"}'
+    return kind.get(type(default), 'a value of its type')
+
+
+def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
+    """``node.declare_parameter(...).value``; a value given at start that the type or range
+    refuses raises ParameterError naming the parameter and what is allowed."""
+    try:
+        return node.declare_parameter(name, default, descriptor).value
+    except ParameterException:
+        given = getattr(node, '_parameter_overrides', {}).get(name)
+        shown = repr(given.value) if given is not None else 'the value given'
+        raise ParameterError(f'parameter {name}: {shown} is not allowed; allowed: '
+                             f'{allowed_values(descriptor, default)}') from None
+
+
+def check_choice(name: str, value, choices) -> None:
+    """Raise ParameterError unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ParameterError(f'parameter {name}: {value!r} is not allowed; allowed: {" | ".join(choices)}')
+
+
 def declare_config(node: Node) -> ProjectConfig:
     """Declare the read-only ``config_dir`` parameter and load the project config from it."""
-    value = node.declare_parameter('config_dir', '', describe(
+    value = declare(node, 'config_dir', '', describe(
         'directory with the YAML config; empty: the installed share/exit_decision/config',
-        read_only=True)).value
+        read_only=True))
     return load_project(Path(value) if value else default_config_dir())
 
 
@@ -74,11 +128,37 @@ class Diagnostics:
     def __init__(self, node: Node, name: str):
         self.node, self.name = node, name
         self.counters: dict[str, float] = {}
-        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, STREAM_QOS)
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         node.create_timer(1.0, self.publish)
 
     def count(self, key: str, amount: float = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + amount
+
+    def reject(self, key: str, what: str, reason: str) -> None:
+        """Count a rejected message under ``rejected_<key>`` and say why (throttled)."""
+        self.count(f'rejected_{key}')
+        self.node.get_logger().warning(f'rejected {what}: {reason}', throttle_duration_sec=5.0)
+
+    def subscribe(self, msg_type, topic: str, callback: Callable, qos: QoSProfile):
+        """``node.create_subscription`` that also counts messages lost before the node took
+        them (``dropped_<topic>``): gaps in the publisher's sequence numbers, counted while
+        the topic has one publisher (with several, rclpy does not say whose a message is)."""
+        key = f'dropped_{topic.rsplit("/", 1)[-1]}'
+        last: dict[str, int] = {}
+        subscription = None
+
+        def on_message(msg, info) -> None:
+            number = info.get('publication_sequence_number')
+            if number is not None and subscription.get_publisher_count() == 1:
+                previous = last.get('number')
+                if previous is not None and number > previous + 1:
+                    self.count(key, number - previous - 1)
+                last['number'] = number
+            else:
+                last.clear()
+            callback(msg)
+        subscription = self.node.create_subscription(msg_type, topic, on_message, qos)
+        return subscription
 
     def publish(self) -> None:
         problems = sum(value for key, value in self.counters.items() if key.startswith('rejected'))
@@ -152,7 +232,7 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
         (run or rclpy.spin)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ConfigError, PolicyError) as error:
+    except (ConfigError, PolicyError, ParameterError) as error:
         print(f'[{name}] cannot start: {error}', file=sys.stderr)
         return 1
     finally:

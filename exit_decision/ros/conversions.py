@@ -16,6 +16,7 @@ from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray
 
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
+from exit_decision.input_checks import InputError
 
 CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
 CLASS_NAMES = {code: name for name, code in CLASS_CODES.items()}
@@ -26,7 +27,7 @@ EVENT_METRICS = {'v_AVs': 'v_avs', 'v_s': 'v_s', 'p_collision': 'p_collision', '
 EVENT_COUNTS = {'n_braking', 'braking_steps'}
 
 
-class MessageError(ValueError):
+class MessageError(InputError):
     """A message that cannot be used; the text names the field and what is wrong with it."""
 
 
@@ -104,7 +105,11 @@ def graph_from_msg(msg: GraphMsg, *, expected_nodes: int | None = None,
     if not np.isfinite(features).all():
         raise MessageError('features contain non-finite values')
     adjacency = np.frombuffer(bytes(msg.adjacency), dtype=np.uint8).reshape(n, n)
-    cav_mask = np.frombuffer(bytes(msg.cav_mask), dtype=np.uint8).astype(bool)
+    raw_mask = np.frombuffer(bytes(msg.cav_mask), dtype=np.uint8)
+    for name, values in (('adjacency', adjacency), ('cav_mask', raw_mask)):
+        if values.size and values.max() > 1:
+            raise MessageError(f'{name} has entries other than 0 and 1')
+    cav_mask = raw_mask.astype(bool)
     return TrafficGraph(features.copy(), adjacency.copy(), cav_mask, tuple(msg.vehicle_ids))
 
 

@@ -15,28 +15,36 @@ under the same shield as training and evaluation, and publishes the commands sta
 mode, algorithm and policy file. ``mode`` and ``algorithm`` switch at runtime through the
 standard parameter service: a value without a loaded policy is refused with the reason; an
 accepted one is used from the next graph. Diagnostics count decisions, shield overrides of
-the network's first choice, and rejected messages (malformed, wrong size, stale).
+the network's first choice, and rejected messages.
+
+A graph or a states message is taken only if it can follow the current episode and step
+(the sequence starts afresh on the bridge's or the player's EVENT_STARTED, and only then)
+and every field fits (sizes, finite values, the scenario's lanes, ids and ranges); otherwise
+it is rejected whole, counted on /diagnostics and changes nothing.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
+from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, TrafficGraph, VehicleStateArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Shield
 from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS
 from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
 from exit_decision.reward import check_weight_input, weight_input
-from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, Diagnostics,
-                                      declare_config, describe, run_node)
-from exit_decision.ros.conversions import MessageError, commands_to_msg, graph_from_msg, states_from_msg
+from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
+                                      STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config, describe,
+                                      run_node)
+from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.input_checks import InputError, StateLimits, StepGate
 
 ALGORITHMS = ('gqn', 'mdgqn', 'mdgqn_conditioned')
 CUSTOM_MODE = 'custom'   # the mode reported for reward_weights that are no configured mode's
@@ -53,17 +61,21 @@ class DecisionNode(Node):
     def __init__(self):
         super().__init__('decision_node')
         config = declare_config(self)
-        p = self.declare_parameter
+        def p(name, default, descriptor):
+            return declare(self, name, default, descriptor)
         policy_dir = Path(p('policy_dir', '', describe(
-            'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies', read_only=True)).value
+            'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies', read_only=True))
             or default_policy_dir())
         modes = list(p('modes', ['AGGI', 'AGGP', 'CONI', 'CONP'], describe(
-            'modes whose policies are loaded at start', read_only=True)).value)
+            'modes whose policies are loaded at start', read_only=True)))
         algorithms = list(p('algorithms', list(ALGORITHMS), describe(
-            'algorithms whose policies are loaded at start', read_only=True)).value)
+            'algorithms whose policies are loaded at start', read_only=True)))
         self.config = config
         self.grid = ActionGrid(config.env.actions)
-        self.shield = Shield.of(config, self.grid, RoadGeometry.of(config.scenario.road))
+        geometry = RoadGeometry.of(config.scenario.road)
+        self.shield = Shield.of(config, self.grid, geometry)
+        planner = LanePlanner.of(config, self.shield)
+        self.limits = StateLimits.of(config, geometry)
         self.controllers: dict[tuple[str, str | None], PolicyController] = {}   # mode None: conditioned
         for algorithm in algorithms:
             conditioned = algorithm.endswith(CONDITIONED_SUFFIX)
@@ -77,17 +89,17 @@ class DecisionNode(Node):
                     raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
                                       f'as algorithm {algorithm!r} needs')
                 weights = weight_input(config.mode(modes[0])) if conditioned else None
-                self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield, weights)
+                self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield, weights, planner)
         if not modes:
             raise PolicyError('parameter modes: give at least one mode')
         self.mode = p('mode', modes[0], describe(
-            'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE]))).value
+            'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
         if not isinstance(self.mode, str) or self.mode not in config.modes and self.mode != CUSTOM_MODE:
-            raise PolicyError(f'mode {self.mode!r}: unknown; known modes: {", ".join(config.modes)}')
+            raise PolicyError(f'parameter mode: {self.mode!r} is not allowed; allowed: {" | ".join(config.modes)}')
         start_weights = weight_input(config.mode(self.mode if self.mode in config.modes else modes[0]))
         self.reward_weights = list(p('reward_weights', [float(x) for x in start_weights], describe(
             'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
-            '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode')).value)
+            '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode')))
         reason = check_weight_input(self.reward_weights)
         if reason:
             raise PolicyError(f'reward_weights {self.reward_weights}: {reason}')
@@ -96,7 +108,7 @@ class DecisionNode(Node):
             self.mode = self.mode_of(self.reward_weights)
             self.set_parameters([Parameter('mode', Parameter.Type.STRING, self.mode)])
         self.algorithm = p('algorithm', algorithms[-1], describe(
-            'gqn, mdgqn (per-mode policies) or mdgqn_conditioned', constraints=' | '.join(algorithms))).value
+            'gqn, mdgqn (per-mode policies) or mdgqn_conditioned', constraints=' | '.join(algorithms)))
         problem = self.problem({})
         if problem:
             raise PolicyError(problem)
@@ -106,13 +118,20 @@ class DecisionNode(Node):
         self.add_pre_set_parameters_callback(self.complete_parameters)
         self.add_on_set_parameters_callback(self.validate_parameters)
         self.add_post_set_parameters_callback(self.apply_parameters)
-        self.graphs: dict[tuple[int, int], TrafficGraph] = {}
-        self.states: dict[tuple[int, int], VehicleStateArray] = {}
+        #: checked graphs (with their stamp) and vehicle states of decision steps, waiting for the other half
+        self.graphs: dict[tuple[int, int], tuple] = {}
+        self.states: dict[tuple[int, int], list] = {}
         self.last_decided: tuple[int, int] = (-1, -1)
-        self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
-        self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
-        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS)
+        gap = 2 * self.interval   # one decision step may go missing without a resync
+        self.graph_gate = StepGate(config.scenario.max_steps, max_gap=gap)
+        self.states_gate = StepGate(config.scenario.max_steps, max_gap=gap)
         self.diagnostics = Diagnostics(self, 'decision_node')
+        self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
+        # events first: when an episode's start and its first messages are both waiting, the
+        # executor takes the subscription created first
+        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        self.diagnostics.subscribe(TrafficGraph, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS)
         self.get_logger().info(f'loaded {len(self.controllers)} policies from {policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
@@ -193,41 +212,66 @@ class DecisionNode(Node):
 
     # --- messages ---------------------------------------------------------------------------
 
+    def on_episode(self, msg: EpisodeEvent) -> None:
+        if msg.event == EpisodeEvent.EVENT_STARTED:
+            for gate in (self.graph_gate, self.states_gate):
+                gate.start(msg.episode)
+            self.graphs.clear()
+            self.states.clear()
+            self.last_decided = (msg.episode, -1)
+
     def on_states(self, msg: VehicleStateArray) -> None:
-        if msg.step % self.interval == 0:
-            self.states[(msg.episode, msg.step)] = msg
-            self.try_decide((msg.episode, msg.step))
+        if msg.step % self.interval:
+            return                                  # only decision steps are used
+        reason = self.states_gate.check(msg.episode, msg.step)
+        if reason:
+            self.states_gate.note_rejected(msg.episode, msg.step)
+            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+            return
+        try:
+            vehicles = states_from_msg(msg)
+            self.limits.check(vehicles, step=msg.step, step_length=msg.step_length)
+        except InputError as error:
+            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
+            return
+        self.diagnostics.count('skipped_states', self.states_gate.accept(msg.step) // self.interval)
+        self.states[(msg.episode, msg.step)] = vehicles
+        self.try_decide((msg.episode, msg.step))
 
     def on_graph(self, msg: TrafficGraph) -> None:
-        key = (msg.episode, msg.step)
         if msg.step % self.interval:
             return
-        if key <= self.last_decided:
-            self.diagnostics.count('rejected_stale_graphs')
-            self.get_logger().warning(f'graph of episode {key[0]} step {key[1]} arrived after a later one',
-                                      throttle_duration_sec=5.0)
+        reason = self.graph_gate.check(msg.episode, msg.step)
+        if reason:
+            self.graph_gate.note_rejected(msg.episode, msg.step)
+            self.diagnostics.reject('out_of_sequence_graphs', 'graph', reason)
             return
-        self.graphs[key] = msg
-        self.try_decide(key)
+        try:
+            graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)
+        except InputError as error:
+            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
+            return
+        self.diagnostics.count('skipped_graphs', self.graph_gate.accept(msg.step) // self.interval)
+        self.graphs[(msg.episode, msg.step)] = (graph, msg.header.stamp)
+        self.try_decide((msg.episode, msg.step))
 
     def try_decide(self, key: tuple[int, int]) -> None:
         if key not in self.graphs or key not in self.states:
             self.forget_before((key[0], key[1] - PAIRING_WINDOW * self.interval))
             return
-        graph_msg, states_msg = self.graphs.pop(key), self.states.pop(key)
+        if key <= self.last_decided:
+            return
+        (graph, stamp), vehicles = self.graphs.pop(key), self.states.pop(key)
         self.forget_before(key)
         self.last_decided = key
         try:
-            graph = graph_from_msg(graph_msg, expected_nodes=self.num_nodes, expected_features=self.num_features)
-            vehicles = states_from_msg(states_msg)
             controller = self.controller()
             decision = controller.decide(graph, vehicles)
-        except (MessageError, KeyError) as error:   # KeyError: a CAV of the graph is not in the states
-            self.diagnostics.count('rejected_graphs')
-            self.get_logger().warning(f'rejected graph of step {key[1]}: {error}', throttle_duration_sec=5.0)
+        except KeyError as error:   # a CAV of the graph is not in the states
+            self.diagnostics.reject('graphs', f'graph of step {key[1]}', f'vehicle {error} is not in the states')
             return
         commands = {vehicle_id: self.grid.command(index) for vehicle_id, index in decision.actions.items()}
-        self.publisher.publish(commands_to_msg(commands, episode=key[0], step=key[1], stamp=graph_msg.header.stamp,
+        self.publisher.publish(commands_to_msg(commands, episode=key[0], step=key[1], stamp=stamp,
                                                mode=self.mode, algorithm=self.algorithm,
                                                policy=str(controller.policy.path)))
         self.diagnostics.count('decisions', len(commands))

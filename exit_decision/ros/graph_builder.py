@@ -1,17 +1,21 @@
 """graph_builder: vehicle states in, the traffic graph out, with the training's graph module.
 
-Slots are kept per episode (reset when the episode number changes). A malformed state
-message is rejected and counted on /diagnostics; the node goes on.
+Slots are kept per episode: they and the step sequence start afresh on the bridge's (or the
+player's) EVENT_STARTED, and only then. A state message is taken only if it can follow the
+current episode and step and every field fits the scenario (``exit_decision.input_checks``);
+otherwise it is rejected whole, counted on /diagnostics and changes nothing.
 """
 from __future__ import annotations
 
-from exit_decision_msgs.msg import TrafficGraph, VehicleStateArray
+from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.node import Node
 
-from exit_decision.graph import GraphBuilder, GraphCapacityError
-from exit_decision.ros.common import GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, Diagnostics, declare_config, run_node
-from exit_decision.ros.conversions import MessageError, graph_to_msg, states_from_msg
+from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
+from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
+                                      Diagnostics, declare_config, run_node)
+from exit_decision.ros.conversions import graph_to_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.input_checks import InputError, StateLimits, StepGate
 
 
 class GraphBuilderNode(Node):
@@ -19,25 +23,37 @@ class GraphBuilderNode(Node):
         super().__init__('graph_builder')
         config = declare_config(self)
         road = config.scenario.road
-        self.builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit,
-                                    road.lane_count)
+        geometry = RoadGeometry.of(road)
+        self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)
+        self.limits = StateLimits.of(config, geometry)
+        self.gate = StepGate(config.scenario.max_steps)
         self.feature_set = config.graph.feature_set
-        self.episode: int | None = None
-        self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, STREAM_QOS)
-        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'graph_builder')
+        self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
+        # events first: when an episode's start and its first states are both waiting, the
+        # executor takes the subscription created first
+        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS)
+
+    def on_episode(self, msg: EpisodeEvent) -> None:
+        if msg.event == EpisodeEvent.EVENT_STARTED:
+            self.gate.start(msg.episode)
+            self.builder.reset()
 
     def on_states(self, msg: VehicleStateArray) -> None:
+        reason = self.gate.check(msg.episode, msg.step)
+        if reason:
+            self.gate.note_rejected(msg.episode, msg.step)
+            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+            return
         try:
             vehicles = states_from_msg(msg)
-            if msg.episode != self.episode:
-                self.builder.reset()
-                self.episode = msg.episode
+            self.limits.check(vehicles, step=msg.step, step_length=msg.step_length)
             graph = self.builder.build(vehicles)
-        except (MessageError, GraphCapacityError) as error:
-            self.diagnostics.count('rejected_states')
-            self.get_logger().warning(f'rejected states of step {msg.step}: {error}', throttle_duration_sec=5.0)
+        except (InputError, GraphInputError, GraphCapacityError) as error:
+            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
+        self.diagnostics.count('skipped_steps', self.gate.accept(msg.step))
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=msg.episode,
                                             step=msg.step, stamp=msg.header.stamp))
         self.diagnostics.count('graphs')

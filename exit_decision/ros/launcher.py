@@ -1,11 +1,11 @@
 """Start the whole stack as separate processes on a machine without `ros2 launch`.
 
 The same executables `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with
-parameters as `--ros-args -p`: recorder, graph_builder, decision_node, then sumo_bridge once
-the others are listening. Optionally switches the decision mode once mid-run through the
-decision node's standard set_parameters service (what `ros2 param set` calls). When the
-bridge has run its episodes, the others get SIGINT (SIGKILL if they hang), and the episode
-metrics (from the episode events) and the bag path are returned.
+parameters as `--ros-args -p`: recorder, graph_builder, decision_node, visualizer (unless
+turned off), then sumo_bridge once the others are listening. Optionally switches the decision
+mode once mid-run through the decision node's standard set_parameters service (what `ros2
+param set` calls). When the bridge has run its episodes, the others get SIGINT (SIGKILL if
+they hang), and the episode metrics (from the episode events) and the bag path are returned.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from pathlib import Path
 from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
 
-from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode
+from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
 
 
@@ -93,19 +93,23 @@ class StackLauncher:
 def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: Path, log_dir: Path,
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
-              timeout: float = 1800.0) -> StackRun:
+              timeout: float = 1800.0, visualizer: bool = True) -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
-    of the first episode (through the parameter service)."""
+    of the first episode (through the parameter service); ``visualizer``: also publish the
+    scene as markers (recorded in the bag)."""
     if bag_path.exists():
         raise FileExistsError(f'{bag_path}: the bag directory exists already')
     common = {'config_dir': config_dir} if config_dir else {}
+    nodes = ['recorder', 'graph_builder', 'decision_node'] + (['visualizer'] if visualizer else [])
+    listeners = len(nodes) + 1   # every node but the bridge subscribes to the states, and this launcher
     parameters = {
         'recorder': {'bag_path': str(bag_path)},
         'graph_builder': dict(common),
         'decision_node': {**common, 'mode': mode, 'algorithm': algorithm,
                           **({'policy_dir': policy_dir} if policy_dir else {})},
-        # recorder, graph builder, decision node and this launcher listen to the states
-        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing, 'wait_for_subscribers': 4},
+        'visualizer': dict(common),
+        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing,
+                        'wait_for_subscribers': listeners},
     }
     for name, values in (extra or {}).items():
         parameters[name].update(values)
@@ -127,11 +131,12 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
     client = node.create_client(SetParameters, '/decision_node/set_parameters')
     try:
-        for name in ('recorder', 'graph_builder', 'decision_node'):
+        for name in nodes:
             launcher.start(name)
         deadline = time.monotonic() + 120.0
-        # the recorder, graph builder and decision node all subscribe to the states
-        while node.count_subscribers(STATES_TOPIC) < 4 or not client.service_is_ready():
+        # the recorder records the markers from the first one on
+        while (node.count_subscribers(STATES_TOPIC) < listeners or not client.service_is_ready()
+               or visualizer and node.count_publishers(MARKERS_TOPIC) < 1):
             launcher.check_alive()
             if time.monotonic() > deadline:
                 raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')

@@ -2,7 +2,9 @@
 
 Subscriptions take the serialized CDR (raw) and store it unchanged, stamped with the receive
 time as rosbag2 does. Ctrl-C or SIGTERM closes the bag properly: everything received is in
-it and the bag is readable (only SIGKILL can leave an unfinished file).
+it and the bag is readable (only SIGKILL can leave an unfinished file). By default it records
+the stack's topics (``bags.DEFAULT_TOPICS``), the visualizer's markers included, so a bag
+opened in Foxglove or RViz shows the scene with no extra step.
 """
 from __future__ import annotations
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
 from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
@@ -53,6 +54,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
             recorded.append(msg)
     grid = ActionGrid(config.env.actions)
     shield = Shield.of(config, grid, RoadGeometry.of(config.scenario.road))
+    planner = LanePlanner.of(config, shield)
     controllers: dict[Path, PolicyController] = {}
     report = ReplayReport()
     for msg in recorded:
@@ -68,7 +70,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         path = policy_file or policy_dir / (name if conditioned else f'{name}_{mode_name}') / 'policy.pt'
         if path not in controllers:
             policy = load_policy(path)
-            controllers[path] = PolicyController(policy, shield, np.zeros(6) if policy.conditioned else None)
+            controllers[path] = PolicyController(policy, shield, np.zeros(6) if policy.conditioned else None, planner)
         controller = controllers[path]
         if controller.policy.conditioned:
             controller.weights = weight_input(config.mode(mode_name))

@@ -7,8 +7,13 @@ Publishes /clock (simulation time), the vehicle states of every step and episode
   previous commands and goes on): deterministic, the mode for evaluation;
 - realtime: steps on a wall-clock schedule (``realtime_factor`` x real time) and applies
   the newest commands that arrived.
-Commands that cannot be applied (stale step, unknown or absent vehicle, non-finite values)
-are rejected one by one and counted on /diagnostics; the step goes on.
+Commands are checked on arrival. A message is rejected whole, counted on /diagnostics and
+changes nothing (in synchronous mode the bridge goes on waiting for a good answer) when it
+cannot answer now: another episode, or (synchronous) any step but the one waited on,
+(realtime) a step not after the last accepted one or after the current one. So is a message
+with a non-finite acceleration, a lane change outside the grid or a vehicle twice. Finite
+accelerations outside the action grid are clamped to it and counted. A command for a vehicle
+that is not a controlled CAV on the road is rejected alone; the step goes on.
 """
 from __future__ import annotations
 
@@ -22,52 +27,59 @@ from rclpy.executors import SingleThreadedExecutor
 from rosgraph_msgs.msg import Clock
 
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
-                                      STATES_TOPIC, STREAM_QOS, Diagnostics, declare_config, describe, run_node)
-from exit_decision.ros.conversions import (MessageError, commands_from_msg, episode_event_to_msg, stamp_of,
-                                           states_to_msg)
+from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC,
+                                      EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
+                                      declare_config, describe, run_node)
+from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of, states_to_msg
 from exit_decision.scenario.simulation import CommandError
+from exit_decision.traffic import CavCommand
+from exit_decision.input_checks import CommandLimits, InputError
 
 
 class SumoBridge(Node):
     def __init__(self):
         super().__init__('sumo_bridge')
         self.config = declare_config(self)
-        p = self.declare_parameter
+        def p(name, default, descriptor):
+            return declare(self, name, default, descriptor)
         self.timing = p('timing', 'synchronous', describe(
             'synchronous: wait for the commands of each decision step; realtime: step on a wall timer',
-            read_only=True, constraints='synchronous | realtime')).value
-        if self.timing not in ('synchronous', 'realtime'):
-            raise ValueError(f"timing must be 'synchronous' or 'realtime', got {self.timing!r}")
+            read_only=True, constraints='synchronous | realtime'))
+        check_choice('timing', self.timing, ('synchronous', 'realtime'))
         self.command_timeout = p('command_timeout', 1.0, describe(
             '[s] synchronous mode: longest wait for the commands of a decision step',
-            float_range=(0.001, 60.0))).value
+            float_range=(0.001, 60.0)))
         self.realtime_factor = p('realtime_factor', 1.0, describe(
-            'realtime mode: simulated seconds per wall-clock second', float_range=(0.01, 1000.0))).value
+            'realtime mode: simulated seconds per wall-clock second', float_range=(0.01, 1000.0)))
         self.episodes = p('episodes', 1, describe('episodes to run, 0 = until stopped',
-                                                  integer_range=(0, 1_000_000))).value
+                                                  integer_range=(0, 1_000_000)))
         self.seed = p('seed', 10_000, describe('seed of the first episode (then +1 each)',
-                                               integer_range=(0, 2**31 - 1))).value
+                                               integer_range=(0, 2**31 - 1)))
         self.startup_timeout = p('startup_timeout', 30.0, describe(
             '[s] synchronous policy mode: wait this long at start for a commands publisher and a states '
-            'subscriber', float_range=(0.0, 3600.0))).value
+            'subscriber', float_range=(0.0, 3600.0)))
         self.wait_for_subscribers = p('wait_for_subscribers', 1, describe(
             'at start, wait (up to startup_timeout) for this many subscribers of the states, e.g. a '
-            'recorder that must not miss the first step', integer_range=(0, 100))).value
+            'recorder that must not miss the first step', integer_range=(0, 100)))
         cav_driver = p('cav_driver', 'policy', describe(
             'policy: CAVs follow the commands; sumo: SUMO drives them (reference runs)', read_only=True,
-            constraints='policy | sumo')).value
+            constraints='policy | sumo'))
+        check_choice('cav_driver', cav_driver, ('policy', 'sumo'))
+        self.limits = CommandLimits.of(self.config.env.actions)
         self.env = ExitDecisionEnv(self.config, cav_driver=cav_driver)
         self.wait_for_decision_node = self.timing == 'synchronous' and cav_driver == 'policy'
         self.interval = self.config.env.decision_interval
         self.step_length = self.config.scenario.step_length
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, CLOCK_QOS)
-        self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+        self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STATES_QOS)
         self.events_pub = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
-        self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'sumo_bridge')
+        self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS)
         self.episode = 0
-        self.pending: CavCommandArray | None = None
+        self.published_step = -1            # step of the newest published states
+        self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
+        self.last_command_step = -1         # realtime: step of the newest accepted commands
+        self.pending: dict[str, CavCommand] | None = None   # accepted, not yet applied
         self.executor_ = SingleThreadedExecutor(context=self.context)
         self.executor_.add_node(self)
         self.get_logger().info(f'{self.timing} bridge, {self.episodes or "unlimited"} episode(s) from seed '
@@ -76,24 +88,37 @@ class SumoBridge(Node):
     # --- commands -----------------------------------------------------------------------------
 
     def on_commands(self, msg: CavCommandArray) -> None:
-        if msg.episode != self.episode or (self.pending is not None and msg.step < self.pending.step):
-            self.diagnostics.count('rejected_stale_commands')
+        """Accept (checked, clamped) the commands that can answer now; reject the rest whole."""
+        if msg.episode != self.episode:
+            reason = f'episode {msg.episode} is not the current episode {self.episode}'
+        elif self.timing == 'synchronous':
+            reason = None if msg.step == self.awaiting else (
+                f'step {msg.step}: waiting for step {self.awaiting}' if self.awaiting is not None
+                else f'step {msg.step}: not waiting for commands')
+        else:
+            reason = None if self.last_command_step < msg.step <= self.published_step else (
+                f'step {msg.step} is not in {self.last_command_step + 1}..{self.published_step}')
+        if reason:
+            self.diagnostics.reject('stale_commands', 'commands', reason)
             return
-        self.pending = msg
-
-    def take_commands(self, step: int) -> dict | None:
-        """The commands answering ``step`` (synchronous) or the newest ones (realtime), with
-        each command that cannot be applied rejected and counted."""
-        msg = self.pending
-        if msg is None or (self.timing == 'synchronous' and msg.step != step):
-            return None
-        self.pending = None
         try:
-            commands = commands_from_msg(msg)
-        except MessageError as error:
-            self.diagnostics.count('rejected_command_messages')
-            self.get_logger().warning(f'rejected commands of step {msg.step}: {error}',
+            commands, clamped = self.limits.sanitize(commands_from_msg(msg))
+        except InputError as error:
+            self.diagnostics.reject('command_messages', f'commands of step {msg.step}', str(error))
+            return
+        if clamped:
+            self.diagnostics.count('clamped_commands', clamped)
+            self.get_logger().warning(f'commands of step {msg.step}: {clamped} acceleration(s) clamped to '
+                                      f'[{self.limits.acceleration_min:g}, {self.limits.acceleration_max:g}]',
                                       throttle_duration_sec=5.0)
+        self.pending, self.last_command_step = commands, msg.step
+        self.awaiting = None
+
+    def take_commands(self) -> dict | None:
+        """The accepted commands not applied yet, each one that cannot be applied now (its
+        vehicle is not a controlled CAV on the road) rejected and counted."""
+        commands, self.pending = self.pending, None
+        if commands is None:
             return None
         accepted = {}
         for vehicle_id, command in commands.items():
@@ -101,27 +126,27 @@ class SumoBridge(Node):
                 self.env.sim.validate_commands({vehicle_id: command})
                 accepted[vehicle_id] = command
             except CommandError as error:
-                self.diagnostics.count('rejected_commands')
-                self.get_logger().warning(f'rejected: {error}', throttle_duration_sec=5.0)
+                self.diagnostics.reject('commands', 'a command', str(error))
         self.diagnostics.count('applied_commands', len(accepted))
         return accepted
 
     def wait_for_commands(self, step: int) -> dict | None:
+        self.pending, self.awaiting = None, step
         deadline = time.monotonic() + self.command_timeout
-        while rclpy.ok(context=self.context):
-            if self.pending is not None and self.pending.step < step:
-                self.diagnostics.count('rejected_stale_commands')   # answers an earlier step: too late
-                self.pending = None
-            if self.pending is not None and self.pending.step == step:
-                return self.take_commands(step)
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                self.diagnostics.count('command_timeouts')
-                self.get_logger().warning(f'no commands for step {step} within {self.command_timeout} s: '
-                                          'holding the previous ones', throttle_duration_sec=5.0)
-                return None
-            self.executor_.spin_once(timeout_sec=remaining)
-        return None
+        try:
+            while rclpy.ok(context=self.context):
+                if self.pending is not None:
+                    return self.take_commands()
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self.diagnostics.count('command_timeouts')
+                    self.get_logger().warning(f'no commands for step {step} within {self.command_timeout} s: '
+                                              'holding the previous ones', throttle_duration_sec=5.0)
+                    return None
+                self.executor_.spin_once(timeout_sec=remaining)
+            return None
+        finally:
+            self.awaiting = None
 
     # --- publishing -----------------------------------------------------------------------------
 
@@ -129,6 +154,7 @@ class SumoBridge(Node):
         self.clock_pub.publish(Clock(clock=stamp_of(result.time)))
         self.states_pub.publish(states_to_msg(result.vehicles, episode=self.episode, step=result.step,
                                               step_length=self.step_length))
+        self.published_step = result.step
 
     def publish_event(self, event: int, seed: int, result) -> None:
         m = self.env.episode_log.metrics() if event == EpisodeEvent.EVENT_ENDED else None
@@ -145,8 +171,10 @@ class SumoBridge(Node):
     def run_episode(self, seed: int) -> None:
         self.env.reset(seed=seed)
         result = self.env.sim.state
-        self.pending = None
+        self.pending, self.published_step, self.last_command_step = None, -1, -1
         self.publish_event(EpisodeEvent.EVENT_STARTED, seed, result)
+        # the nodes start their sequence checks on this event: let it arrive before the states
+        self.events_pub.wait_for_all_acked(Duration(seconds=1.0))
         period = self.step_length / self.realtime_factor
         next_tick = time.monotonic()
         while rclpy.ok(context=self.context):
@@ -160,7 +188,7 @@ class SumoBridge(Node):
                 next_tick += period
                 while (wait := next_tick - time.monotonic()) > 0:
                     self.executor_.spin_once(timeout_sec=wait)
-                commands = self.take_commands(result.step)
+                commands = self.take_commands()
             result, _ = self.env.simulate_step(commands)
         self.publish_event(EpisodeEvent.EVENT_ENDED, seed, result)
 

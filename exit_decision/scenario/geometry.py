@@ -41,6 +41,16 @@ class RoadGeometry:
         return (vehicle.on_highway and 0 <= vehicle.lane_index + lane_change < self.lane_count
                 and not self.no_lane_change_zone(vehicle.position))
 
+    def route_lanes(self, position: float) -> range:
+        """The lanes from which the task exit is reached as planned at ``position``: until
+        Exit_0's junction ends, every lane but 0 (lane 0 takes Exit_0); from there to Exit_1's
+        diverge, lane 0; past it, any lane (the task is decided)."""
+        if position < self.merge_done_at['Highway_0']:
+            return range(1, self.lane_count)
+        if position < self.diverge_at['Highway_1']:
+            return range(0, 1)
+        return range(self.lane_count)
+
     def no_lane_change_zone(self, position: float) -> bool:
         """True in the last metres before a diverge and on its junction: no lane changes there
         (the lane held picks the exit; SUMO has no lane changes on junction lanes)."""

@@ -1,0 +1,134 @@
+"""visualizer: the scene as ``visualization_msgs/MarkerArray`` on /exit_decision/markers (frame ``map``).
+
+Thin glue around ``exit_decision.visualization``: vehicle states, the graph, the commands
+(with their mode) and the decision node's shield-override counter (/diagnostics) go into a
+``FrameBuilder``; ``MarkerScene`` says what to draw and what to delete. At most ``max_rate``
+arrays per wall-clock second (a synchronous stack steps much faster than anyone watches);
+frames in between still count for collisions, and a frame with no vehicles is always sent. Open the topic (or a recorded bag) in RViz or Foxglove with fixed frame ``map``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+
+from diagnostic_msgs.msg import DiagnosticArray
+from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
+from geometry_msgs.msg import Point
+from rclpy.node import Node
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from exit_decision.ros.common import (
+    COMMANDS_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    GRAPH_TOPIC,
+    MARKERS_TOPIC,
+    STATES_TOPIC,
+    STREAM_QOS,
+    Diagnostics,
+    declare,
+    declare_config,
+    describe,
+    run_node,
+)
+from exit_decision.ros.conversions import (
+    MessageError,
+    commands_from_msg,
+    graph_from_msg,
+    states_from_msg,
+)
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.visualization.layout import RoadLayout
+from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
+from exit_decision.visualization.trace import FrameBuilder
+
+
+def marker_array(specs: Sequence[MarkerSpec], stamp) -> MarkerArray:
+    """MarkerSpecs as the ROS message."""
+    markers = []
+    for spec in specs:
+        marker = Marker(ns=spec.namespace, id=spec.marker_id, type=getattr(Marker, spec.kind),
+                        action=getattr(Marker, spec.action), text=spec.text)
+        marker.header.frame_id = FRAME_ID
+        marker.header.stamp = stamp
+        marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = map(float, spec.position)
+        marker.pose.orientation.z, marker.pose.orientation.w = math.sin(spec.yaw / 2), math.cos(spec.yaw / 2)
+        marker.scale.x, marker.scale.y, marker.scale.z = map(float, spec.scale)
+        marker.color = ColorRGBA(r=float(spec.colour[0]), g=float(spec.colour[1]), b=float(spec.colour[2]),
+                                 a=float(spec.colour[3]))
+        marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in spec.points]
+        markers.append(marker)
+    return MarkerArray(markers=markers)
+
+
+class Visualizer(Node):
+    def __init__(self):
+        super().__init__('visualizer')
+        config = declare_config(self)
+        self.max_rate = declare(self, 'max_rate', 20.0, describe(
+            '[Hz] most marker arrays per wall-clock second; 0: one per vehicle-state message',
+            float_range=(0.0, 1000.0)))
+        road = config.scenario.road
+        layout = RoadLayout.of(RoadGeometry.of(road), road)
+        self.frames = FrameBuilder(layout, config.scenario.step_length)
+        self.scene = MarkerScene(layout)
+        self.overrides: int | None = None
+        self.last_sent = -math.inf
+        self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
+        # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
+        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS)
+        self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
+        self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
+        self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
+        self.diagnostics = Diagnostics(self, 'visualizer')
+
+    def on_states(self, msg: VehicleStateArray) -> None:
+        try:
+            vehicles = states_from_msg(msg)
+        except MessageError as error:
+            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
+            return
+        if msg.episode != self.frames.episode:
+            self.frames.reset(msg.episode)
+        frame = self.frames.add(msg.step, vehicles, overrides=self.overrides)
+        now = time.monotonic()
+        if self.max_rate and now - self.last_sent < 1.0 / self.max_rate and vehicles:
+            self.scene.observe(frame)
+            return
+        self.last_sent = now
+        self.publisher.publish(marker_array(self.scene.update(frame), msg.header.stamp))
+        self.diagnostics.count('marker_arrays')
+
+    def on_commands(self, msg: CavCommandArray) -> None:
+        if msg.episode != self.frames.episode:
+            return
+        try:
+            self.frames.decide(commands_from_msg(msg), msg.mode)
+        except MessageError as error:
+            self.diagnostics.reject('commands', f'commands of step {msg.step}', str(error))
+
+    def on_graph(self, msg: TrafficGraph) -> None:
+        if msg.episode != self.frames.episode:
+            return
+        try:
+            graph = graph_from_msg(msg)
+        except MessageError as error:
+            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
+            return
+        self.frames.graph(graph.vehicle_ids, graph.adjacency)
+
+    def on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == 'decision_node':
+                for value in status.values:
+                    if value.key == 'shield_overrides':
+                        self.overrides = int(float(value.value))
+
+
+def main() -> int:
+    return run_node('visualizer', Visualizer)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

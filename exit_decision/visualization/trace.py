@@ -1,0 +1,104 @@
+"""Frames of an episode: the vehicles of a step with what the stack decided around them.
+
+``FrameBuilder`` is fed step by step (by the visualizer node from topics, by ``show`` from a
+bag, by ``evaluate --show`` from the environment): it holds each CAV's last command and the
+active mode, and finds collisions. SUMO removes colliding vehicles (``collision.action
+remove``), so where no exact list is given (topics and bags carry none), a vehicle that left
+before the end of its route is taken as crashed, at its last state.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from exit_decision.traffic import CavCommand, VehicleState
+from exit_decision.visualization.layout import RoadLayout
+
+ARRIVAL_MARGIN = 1.0   # [m] beyond one step of travel: a vehicle this close to its route's end arrived
+
+
+@dataclass(frozen=True)
+class Frame:
+    episode: int
+    step: int
+    time: float                                   # [s] simulation time
+    vehicles: Sequence[VehicleState]
+    commands: Mapping[str, CavCommand]            # each controlled CAV's last command (held)
+    decided: Mapping[str, CavCommand]             # commands that arrived since the previous frame
+    mode: str                                     # '' until the first commands
+    crashed: Sequence[VehicleState] = ()          # last states of vehicles removed by a collision
+    edges: Sequence[tuple[str, str]] = ()         # graph edges between vehicle ids (no self loops)
+    overrides: int | None = None                  # shield overrides so far, where known
+
+
+@dataclass
+class EpisodeTrace:
+    """The frames of one episode (or a time window of it) and what the clip is called."""
+    episode: int
+    label: str
+    step_length: float
+    frames: list[Frame] = field(default_factory=list)
+
+    def window(self, start: float | None, end: float | None) -> EpisodeTrace:
+        frames = [f for f in self.frames if (start is None or f.time >= start) and (end is None or f.time <= end)]
+        return EpisodeTrace(self.episode, self.label, self.step_length, frames)
+
+    def vehicle_classes(self) -> dict[str, str]:
+        return {v.vehicle_id: v.vehicle_class for frame in self.frames for v in frame.vehicles}
+
+
+class FrameBuilder:
+    def __init__(self, layout: RoadLayout, step_length: float, episode: int = 0):
+        self.layout, self.step_length = layout, step_length
+        self.reset(episode)
+
+    def reset(self, episode: int) -> None:
+        self.episode = episode
+        self.mode = ''
+        self.held: dict[str, CavCommand] = {}
+        self.decided: dict[str, CavCommand] = {}
+        self.previous: dict[str, VehicleState] = {}
+        self.edges: list[tuple[str, str]] = []
+
+    def decide(self, commands: Mapping[str, CavCommand], mode: str | None = None) -> None:
+        """Commands of a decision (shown from the next frame on)."""
+        self.held.update(commands)
+        self.decided.update(commands)
+        if mode:
+            self.mode = mode
+
+    def graph(self, vehicle_ids: Sequence[str], adjacency) -> None:
+        """The newest graph: its edges are drawn between the vehicles of the next frames."""
+        rows = np.argwhere(np.triu(np.asarray(adjacency), 1))
+        self.edges = [(vehicle_ids[i], vehicle_ids[j]) for i, j in rows if vehicle_ids[i] and vehicle_ids[j]]
+
+    def crashed(self, vehicles: Sequence[VehicleState]) -> list[VehicleState]:
+        """Vehicles of the previous frame that are gone though their route did not end there."""
+        present = {v.vehicle_id for v in vehicles}
+        crashed = []
+        for vehicle_id, last in self.previous.items():
+            if vehicle_id in present:
+                continue
+            if self.layout.route_end(last) - last.position > last.speed * self.step_length + ARRIVAL_MARGIN:
+                crashed.append(last)
+        return crashed
+
+    def add(self, step: int, vehicles: Sequence[VehicleState], collided: Iterable[str] | None = None,
+            overrides: int | None = None) -> Frame:
+        """The frame of a step; ``collided``: the ids of this step's collisions where they are
+        known exactly (the environment), else they are found from departures."""
+        if collided is None:
+            crashed = self.crashed(vehicles)
+        else:
+            crashed = [self.previous[i] for i in sorted(set(collided)) if i in self.previous]
+        present = {v.vehicle_id for v in vehicles}
+        commanded = {v.vehicle_id for v in vehicles if v.controlled}   # a released CAV takes no more commands
+        self.held = {k: c for k, c in self.held.items() if k in commanded}
+        frame = Frame(self.episode, step, step * self.step_length, list(vehicles), dict(self.held),
+                      self.decided, self.mode, crashed, [e for e in self.edges if e[0] in present and e[1] in present],
+                      overrides)
+        self.decided = {}
+        self.previous = {v.vehicle_id: v for v in vehicles}
+        return frame

@@ -1,0 +1,265 @@
+"""The scene as markers, and `exit-decision show` on a small bag: what a user looks at."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import CavCommand
+from exit_decision.visualization.layout import CLASS_COLOURS, COLLISION_COLOUR, RoadLayout
+from exit_decision.visualization.markers import MarkerScene
+from exit_decision.visualization.trace import FrameBuilder
+
+from conftest import make_vehicle
+
+STEP = 0.1
+
+
+@pytest.fixture(scope='module')
+def layout(project_config):
+    road = project_config.scenario.road
+    return RoadLayout.of(RoadGeometry.of(road), road)
+
+
+def snapshot():
+    """Two CAVs and one vehicle of each human class on the highway; HV3 about to leave by Exit_0."""
+    return [make_vehicle('CAV_0', 'CAV', lane=1, position=60.0),
+            make_vehicle('CAV_1', 'CAV', lane=2, position=90.0),
+            make_vehicle('HV1_0', 'HV1', lane=0, position=120.0),
+            make_vehicle('HV2_0', 'HV2', lane=1, position=40.0),
+            dataclasses.replace(make_vehicle('HV3_0', 'HV3', lane=0, position=190.0, edge='Exit_0'),
+                                route_target='Exit_0')]
+
+
+def test_markers_of_a_snapshot_show_each_vehicle_in_its_class_colour_and_delete_departed_ones(layout):
+    vehicles = snapshot()
+    hv3_end = layout.ramps['Exit_0'].end
+    vehicles[-1] = dataclasses.replace(vehicles[-1], position=hv3_end - 1.0)
+    frames = FrameBuilder(layout, STEP, episode=3)
+    frames.decide({'CAV_0': CavCommand(+1, -6.0), 'CAV_1': CavCommand(0, 2.0)}, mode='AGGP')
+    frames.graph(['CAV_0', '', 'HV1_0'], np.array([[1, 0, 1], [0, 0, 0], [1, 0, 1]]))
+    scene = MarkerScene(layout)
+    first = scene.update(frames.add(0, vehicles))
+
+    assert first[0].action == 'DELETEALL', 'a new episode clears what an earlier one left'
+    by_ns = {}
+    for marker in first[1:]:
+        assert marker.action == 'ADD'
+        by_ns.setdefault(marker.namespace, []).append(marker)
+    boxes = {m.marker_id: m for m in by_ns['vehicles']}
+    ids = {m.marker_id: m.text for m in by_ns['vehicle_ids']}
+    assert len(boxes) == 5 and sorted(ids.values()) == sorted(v.vehicle_id for v in vehicles)
+    for marker_id, box in boxes.items():
+        vehicle = next(v for v in vehicles if v.vehicle_id == ids[marker_id])
+        assert box.kind == 'CUBE' and box.colour[:3] == CLASS_COLOURS[vehicle.vehicle_class]
+        assert box.scale[0] == vehicle.length
+    assert len({box.colour for box in boxes.values()}) == 4, 'four classes, four colours'
+    on_ramp = next(b for i, b in boxes.items() if ids[i] == 'HV3_0')
+    assert on_ramp.position[1] < -10 and on_ramp.yaw < 0, 'a vehicle on Exit_0 is drawn down the ramp'
+    # each CAV's command: the lane change to the left points left, braking is red, speeding up green
+    arrows = {ids[m.marker_id]: m for m in by_ns['commands']}
+    assert set(arrows) == {'CAV_0', 'CAV_1'} and all(a.kind == 'ARROW' for a in arrows.values())
+    (x0, y0, _), (x1, y1, _) = arrows['CAV_0'].points
+    assert y1 - y0 == pytest.approx(layout.lane_spacing) and x1 > x0
+    assert arrows['CAV_1'].points[1][1] == pytest.approx(arrows['CAV_1'].points[0][1])
+    red, green, _, _ = arrows['CAV_0'].colour
+    assert red > 0.7 and green < 0.3
+    red, green, _, _ = arrows['CAV_1'].colour
+    assert green > red
+    assert len(by_ns['graph_edges']) == 1 and len(by_ns['graph_edges'][0].points) == 2
+    assert 'mode AGGP' in by_ns['status'][0].text and 'episode 3' in by_ns['status'][0].text
+    assert len(by_ns['road']) == layout.lane_count + 1 + 2 * len(layout.ramps)
+    assert 'collisions' not in by_ns
+
+    # next step: HV1_0 vanished mid-road (SUMO removed it: a collision), HV3_0 reached the end of Exit_0
+    second = scene.update(frames.add(1, vehicles[:2] + vehicles[3:4]))
+    deleted = {(m.namespace, m.marker_id) for m in second if m.action == 'DELETE'}
+    gone = {i for i, text in ids.items() if text in ('HV1_0', 'HV3_0')}
+    assert {('vehicles', i) for i in gone} <= deleted and {('vehicle_ids', i) for i in gone} <= deleted
+    assert ('graph_edges', 0) in deleted, 'the edge to HV1_0 went with it'
+    assert not [m for m in second if m.action == 'DELETEALL']
+    assert len([m for m in second if m.namespace == 'vehicles' and m.action == 'ADD']) == 3
+    collisions = [m for m in second if m.namespace == 'collisions']
+    assert len(collisions) == 1 and collisions[0].colour[:3] == COLLISION_COLOUR
+    assert collisions[0].position[0] == pytest.approx(120.0 - 2.5), 'where HV1_0 was last'
+    text = [m.text for m in second if m.namespace == 'collision_text']
+    assert text == ['collision HV1_0'], 'HV3_0 arrived: no collision'
+
+
+def test_markers_become_a_marker_array_in_frame_map(layout):
+    from visualization_msgs.msg import Marker
+
+    from exit_decision.ros.visualizer import marker_array
+
+    frames = FrameBuilder(layout, STEP)
+    vehicles = snapshot()
+    msg = marker_array(MarkerScene(layout).update(frames.add(0, vehicles)), stamp=_stamp())
+    assert msg.markers[0].action == Marker.DELETEALL
+    cubes = [m for m in msg.markers if m.ns == 'vehicles']
+    assert len(cubes) == 5 and all(m.type == Marker.CUBE and m.header.frame_id == 'map' for m in cubes)
+    ramp = next(m for m in cubes if m.pose.position.y < -10)
+    yaw = 2 * math.atan2(ramp.pose.orientation.z, ramp.pose.orientation.w)
+    assert yaw == pytest.approx(math.atan2(*reversed(layout.ramps['Exit_0'].direction)))
+    cav = next(m for m in cubes if m.color.b > 0.6)
+    assert (cav.color.r, cav.color.g, cav.color.b) == pytest.approx(CLASS_COLOURS['CAV'])
+
+
+def _stamp():
+    from exit_decision.ros.conversions import stamp_of
+    return stamp_of(0.0)
+
+
+# --- `exit-decision show` on a fixture bag ---------------------------------------------------------
+
+def write_fixture_bag(path, layout, lane_shift=0):
+    """One episode of 40 steps: 5 vehicles; CAV_0 commanded left at step 10; the mode switches
+    from AGGP to CONP at step 20; HV1_0 disappears mid-road at step 30 (a collision).
+    ``lane_shift``: every lane index that much higher (a bag of a wider road)."""
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from exit_decision.graph import TrafficGraph
+    from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
+    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+    from exit_decision.ros.conversions import commands_to_msg, graph_to_msg, stamp_of, states_to_msg
+
+    store = typestore()
+    vehicles = {}
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connections = {topic: writer.add_connection(topic, DEFAULT_TOPICS[topic], typestore=store)
+                       for topic in (STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC)}
+        for step in range(40):
+            states = [dataclasses.replace(v, position=v.position + 20.0 * STEP * step, lane_index=lane_shift
+                                          + (2 if v.vehicle_id == 'CAV_0' and step > 12 else v.lane_index))
+                      for v in snapshot() if not (v.vehicle_id == 'HV1_0' and step >= 30)]
+            vehicles.update({v.vehicle_id: v.vehicle_class for v in states})
+            stamp = 1_000_000_000 + step * 10_000_000
+            writer.write(connections[STATES_TOPIC], stamp, serialize_message(
+                states_to_msg(states, episode=0, step=step, step_length=STEP)))
+            n = len(states)
+            graph = TrafficGraph(np.zeros((n, 3), np.float32), np.eye(n, dtype=np.uint8) | np.eye(n, k=1, dtype=np.uint8)
+                                 | np.eye(n, k=-1, dtype=np.uint8), np.array([v.is_cav for v in states]),
+                                 tuple(v.vehicle_id for v in states))
+            writer.write(connections[GRAPH_TOPIC], stamp + 1, serialize_message(
+                graph_to_msg(graph, feature_set='test', episode=0, step=step, stamp=stamp_of(step * STEP))))
+            if step % 5 == 0:
+                commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0), 'CAV_1': CavCommand(0, -2.0)}
+                writer.write(connections[COMMANDS_TOPIC], stamp + 2, serialize_message(commands_to_msg(
+                    commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP' if step < 20 else 'CONP',
+                    algorithm='mdgqn_conditioned', policy='test')))
+    return vehicles
+
+
+def class_pixels(image: np.ndarray, box, colour, tolerance=12) -> int:
+    left, top, right, bottom = box
+    area = image[top:bottom, left:right, :3].astype(int)
+    return int((np.abs(area - np.array(colour) * 255).max(axis=2) <= tolerance).sum())
+
+
+def test_show_draws_every_vehicle_of_a_bag_in_its_class_colour_and_a_clip(project_config, layout, tmp_path):
+    from exit_decision.ros.show import show_bag
+
+    bag = tmp_path / 'bag'
+    vehicles = write_fixture_bag(bag, layout)
+    [shown] = show_bag(bag, project_config, tmp_path / 'out', progress=False)
+    diagram = shown.diagram
+    assert diagram.trajectories == vehicles, 'a trajectory drawn for every vehicle of the bag, in its class'
+    assert len(diagram.lines) == len(set(diagram.lines)), 'one line per vehicle in each panel, not pieces'
+    assert {panel for panel, vehicle_id in diagram.lines if vehicle_id == 'CAV_0'} == {1, 2}, 'CAV_0 went left'
+    assert len(diagram.lines) == len(vehicles) + 1
+    assert diagram.lane_changes == 1 and diagram.collisions == 1
+    assert [(round(t, 1), a, b) for t, a, b in diagram.mode_switches] == [(2.0, 'AGGP', 'CONP')], 'at its decision'
+    image = np.asarray(Image.open(diagram.path).convert('RGB'))
+    assert len(diagram.plot_areas) == layout.lane_count + 1
+    for name, colour in CLASS_COLOURS.items():
+        inside = sum(class_pixels(image, box, colour) for box in diagram.plot_areas)
+        assert inside > 50, f'{name} trajectories drawn inside the panels ({inside} pixels)'
+    lane_of = {'CAV': (0, 1), 'HV1': (2,), 'HV2': (1,), 'HV3': (3,)}   # panels from the top: lanes 2, 1, 0, ramps
+    for name, panels in lane_of.items():
+        for index, box in enumerate(diagram.plot_areas):
+            present = class_pixels(image, box, CLASS_COLOURS[name]) > 20
+            assert present == (index in panels), f'{name} in panel {index}: {present}'
+    [clip] = shown.clips if len(shown.clips) == 1 else [c for c in shown.clips if c.suffix == '.gif']
+    assert clip.suffix == '.gif'
+    with Image.open(clip) as gif:
+        assert gif.n_frames == 9, 'every 5th step of 40 (5x real time at 10 fps) and the last'
+        gif.seek(4)
+        frame = np.asarray(gif.convert('RGB'))
+        assert all(class_pixels(frame, (0, 0, frame.shape[1], frame.shape[0]), c, 20) > 5
+                   for c in CLASS_COLOURS.values()), 'every class on the road in the clip'
+
+
+def test_show_command_writes_beside_the_bag_and_refuses_bad_input_in_one_line(layout, tmp_path, capsys):
+    from exit_decision.cli import main
+
+    bag = tmp_path / 'bag'
+    write_fixture_bag(bag, layout)
+    write_fixture_bag(tmp_path / 'wide', layout, lane_shift=1)
+    assert main(['show', str(bag), '--start', '1.0', '--end', '2.0']) == 0
+    out = capsys.readouterr().out
+    assert 'episode 0: 5 vehicles, 11 steps (1.0-2.0 s)' in out
+    assert (tmp_path / 'bag_show' / 'episode_0_time_space.png').is_file()
+    assert (tmp_path / 'bag_show' / 'episode_0_birds_eye.gif').is_file()
+    for argv, expected in [(['show', str(tmp_path / 'nope')], 'nope: no such bag'),
+                           (['show', str(bag), '--episode', '4'], '--episode 4: not in'),
+                           (['show', str(bag), '--start', '3', '--end', '1'], 'the window is empty'),
+                           (['show', str(tmp_path / 'wide')], 'CAV_1 is in lane 3, the road of the config has 3')]:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert expected in err and len(err.splitlines()) == 1, err
+    with pytest.raises(SystemExit) as exit_:
+        main(['show', str(bag), '--fps', '0'])
+    assert exit_.value.code == 2 and "'0': expected a number > 0" in capsys.readouterr().err
+
+
+def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
+    from exit_decision_msgs.msg import VehicleStateArray
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.launcher import start_node
+    from ros_helpers import stop
+
+    test = ProbeNode('visualizer_test')
+    arrays = []
+    test.node.create_subscription(MarkerArray, MARKERS_TOPIC, arrays.append, STREAM_QOS)
+    publisher = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+    node = start_node('visualizer', {'max_rate': 0.0}, tmp_path / 'visualizer.log')
+    try:
+        assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30), 'the visualizer subscribes'
+        # until the markers reader is matched too, step 0 is sent again (the same frame each time)
+        for _ in range(40):
+            publisher.publish(states_to_msg(snapshot(), episode=0, step=0, step_length=STEP))
+            if test.spin_until(lambda: arrays, 0.5):
+                break
+        assert arrays, 'markers for the vehicle states'
+        publisher.publish(states_to_msg(snapshot()[:3], episode=0, step=1, step_length=STEP))
+        assert test.spin_until(lambda: any(m.action == Marker.DELETE for m in arrays[-1].markers), 10)
+    finally:
+        test.close()
+        stop(node)
+    cubes = [m for m in arrays[0].markers if m.ns == 'vehicles']
+    assert len(cubes) == 5 and {m.header.frame_id for m in arrays[0].markers} == {'map'}
+    deleted = [m for m in arrays[-1].markers if m.action == Marker.DELETE and m.ns == 'vehicles']
+    assert len(deleted) == 2, 'HV2_0 and HV3_0 left: their boxes are deleted'
+
+
+def test_evaluate_show_draws_the_first_episodes_of_a_run_without_ros(tmp_path):
+    from exit_decision.config import load_project
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import run_episodes
+    from exit_decision.visualization.episodes import ShowEpisodes
+    from ros_helpers import small_config_dir
+
+    env = ExitDecisionEnv(load_project(small_config_dir(tmp_path / 'config')), cav_driver='sumo')
+    try:
+        played = run_episodes(env, None, [7, 8], show=ShowEpisodes(tmp_path / 'show', 1).named('sumo', 'CONI'))
+        entered = sum(len(ids) for ids in env.episode_log.entered.values())
+    finally:
+        env.close()
+    assert len(played) == 2 and entered == 12
+    assert sorted(p.name for p in (tmp_path / 'show').iterdir()) == ['sumo_seed7_birds_eye.gif',
+                                                                     'sumo_seed7_time_space.png']
