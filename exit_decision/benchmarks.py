@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 from exit_decision.config import ProjectConfig
 from exit_decision.scenario.simulation import Backend, HighwaySimulation
@@ -40,7 +41,6 @@ def bench_simulation(config: ProjectConfig, episodes: int, seed: int) -> str:
 def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     """Environment steps/s with and without learning, ms per update, inference latency."""
     import tempfile
-    from pathlib import Path
 
     import numpy as np
 
@@ -97,13 +97,36 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     return '\n'.join(lines)
 
 
+def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
+    """The compare sweep's throughput (rule_based on every variant, ``episodes`` seeds per cell)
+    on a local Ray with 1 worker and with one per core; worker start-up counts, Ray's does not."""
+    import os
+    import tempfile
+
+    from exit_decision.config import default_config_dir
+    from exit_decision.experiments.compare import load_variants, plan_cells, run_sweep
+
+    configs = load_variants((config_dir or default_config_dir()) / 'variants.yaml', config_dir)
+    cells = plan_cells(['rule_based'], configs, [next(iter(configs.values())).env.mode])
+    seeds = list(range(seed, seed + episodes))
+    lines = [f'compare sweep, local Ray: rule_based on {len(cells)} variants x {episodes} seed(s), one process per cell']
+    rates = {}
+    for workers in sorted({1, os.cpu_count() or 1}):
+        with tempfile.TemporaryDirectory() as out:
+            result = run_sweep(cells, configs, seeds, Path(out), workers=workers, retries=0, progress=False)
+        rates[workers] = len(cells) * episodes / result.seconds
+        failed = f', {len(result.failed)} cell(s) failed' if result.failed else ''
+        lines.append(f'  {workers} worker(s): {result.seconds:6.1f} s, {rates[workers]:.2f} episodes/s{failed}')
+    lines.append(f'  {max(rates)} / 1 worker(s) throughput ratio: {rates[max(rates)] / rates[1]:.2f}x')
+    return '\n'.join(lines)
+
+
 def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     """Bridge, graph builder and decision node in separate processes, synchronous mode.
 
     An observer process counts the states and measures, for each decision step, the time
     from receiving the states to receiving the commands that answer them."""
     import tempfile
-    from pathlib import Path
 
     import numpy as np
     from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray

@@ -201,13 +201,28 @@ def cmd_stack(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Re-run the decision policy on a bag's recorded graphs; compare with its commands."""
+    from exit_decision.ros.bags import BagError
     from exit_decision.ros.decision_node import default_policy_dir
     from exit_decision.ros.replay import replay_decisions
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
-    report = replay_decisions(args.bag, config, args.policy_dir or default_policy_dir(), mode=args.mode,
-                              algorithm=args.algorithm, policy_file=args.policy)
+    try:
+        report = replay_decisions(args.bag, config, args.policy_dir or default_policy_dir(), mode=args.mode,
+                                  algorithm=args.algorithm, policy_file=args.policy)
+    except BagError as error:
+        raise UsageError(str(error)) from None
     print(report.summary())
+    return 0
+
+
+def cmd_bag_repair(args: argparse.Namespace) -> int:
+    """Make a bag whose recorder was killed readable up to its last complete chunk."""
+    from exit_decision.ros.bags import BagError, repair_bag
+
+    try:
+        print(repair_bag(args.bag).summary())
+    except BagError as error:
+        raise UsageError(str(error)) from None
     return 0
 
 
@@ -224,6 +239,25 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Every method on every scenario variant, the same seeds, as Ray tasks; CSV per cell."""
+    from exit_decision.experiments.compare import default_methods, load_variants, plan_cells, run_sweep, write_summary
+
+    variants = args.variants or (args.config_dir or default_config_dir()) / 'variants.yaml'
+    configs = load_variants(variants, args.config_dir, args.override, args.variant)
+    base = next(iter(configs.values()))
+    modes = args.mode or list(base.training.conditioning.validation_modes)
+    for mode in modes:
+        base.mode(mode)
+    cells = plan_cells(args.method or default_methods(), configs, modes)
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    result = run_sweep(cells, configs, seeds, args.out, args.address, args.workers, args.retries)
+    summary = write_summary(args.out, cells, configs, modes, 'exit-decision ' + ' '.join(sys.argv[1:]))
+    print(result.summary())
+    print(f'per-cell CSVs in {args.out}/<variant>/; tables: {summary}')
+    return 1 if result.failed else 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from exit_decision.benchmarks import bench_learning, bench_simulation
     config = load_project(args.config_dir, args.scenario_override, args.override)
@@ -231,6 +265,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(bench_simulation(config, args.episodes, args.seed))
     if args.what in ('learning', 'all'):
         print(bench_learning(config, args.seed, args.episodes))
+    if args.what in ('sweep', 'all'):
+        from exit_decision.benchmarks import bench_sweep
+        print(bench_sweep(args.config_dir, args.episodes, args.seed))
     if args.what in ('ros', 'all'):
         from exit_decision.benchmarks import bench_ros
         print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed))
@@ -336,6 +373,13 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--policy-dir', type=Path, default=None)
     replay.set_defaults(func=cmd_replay)
 
+    bag = commands.add_parser('bag', help='bag maintenance')
+    bag_commands = bag.add_subparsers(dest='bag_command', required=True)
+    repair = bag_commands.add_parser('repair', help='make a bag whose recorder was killed (SIGKILL, power loss) '
+                                                    'readable up to its last complete chunk; says what was lost')
+    repair.add_argument('bag', type=Path, help='the bag directory the recorder wrote')
+    repair.set_defaults(func=cmd_bag_repair)
+
     show = commands.add_parser('show', help='time-space diagrams (PNG) and bird\'s-eye clips (GIF; MP4 where ffmpeg '
                                             'exists) of the episodes of a bag')
     show.add_argument('bag', type=Path, help='a bag directory written by the recorder (exit-decision stack)')
@@ -400,12 +444,36 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument('--out', type=Path, default=Path('docs/results.md'))
     report.set_defaults(func=cmd_report)
 
-    bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning)')
+    compare = commands.add_parser('compare', help='every method on every scenario variant (config/variants.yaml) on '
+                                                  'the same seeds, as Ray tasks; a CSV per cell, reruns skip done cells')
+    compare.add_argument('--config-dir', type=Path, default=None)
+    compare.add_argument('--override', type=Path, action='append', default=[],
+                         help='YAML keyed by config file merged over the config of every variant (repeatable)')
+    compare.add_argument('--variants', type=Path, default=None, help='default: <config dir>/variants.yaml')
+    compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
+    compare.add_argument('--method', action='append', default=[],
+                         help='rule_based, sumo or a policy.pt (repeatable; default: both drivers and the shipped '
+                              'policies/mdgqn_conditioned/policy.pt)')
+    compare.add_argument('--mode', action='append', default=[],
+                         help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
+    compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')
+    compare.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
+    compare.add_argument('--out', type=Path, default=Path('runs/compare'))
+    compare.add_argument('--address', default=None,
+                         help='a Ray cluster to run on (its nodes need this package, SUMO and the policy files); '
+                              'default: a local Ray on loopback')
+    compare.add_argument('--workers', type=number(int, 1), default=None,
+                         help='local Ray: simulations at once (default: every core)')
+    compare.add_argument('--retries', type=number(int, 0), default=2, help='further attempts of a failed cell')
+    compare.set_defaults(func=cmd_compare)
+
+    bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning; '
+                                              'the compare sweep with 1 and every local worker; ROS)')
     _common(bench)
-    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'ros', 'all'], default='all')
+    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'sweep', 'ros', 'all'], default='all')
     bench.add_argument('--steps', type=int, default=1000, help='ros: synchronous steps to measure')
     bench.add_argument('--policy-dir', type=Path, default=None, help='ros: default the shipped policies/')
-    bench.add_argument('--episodes', type=int, default=2)
+    bench.add_argument('--episodes', type=int, default=2, help='episodes per measurement (sweep: seeds per cell)')
     bench.add_argument('--seed', type=int, default=0)
     bench.set_defaults(func=cmd_bench)
     return parser

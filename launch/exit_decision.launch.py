@@ -2,38 +2,36 @@
 
     ros2 launch exit_decision exit_decision.launch.py mode:=AGGI episodes:=1
 
-The bridge, graph builder and decision node, a recorder writing a bag, and the visualizer
-(markers on /exit_decision/markers for RViz/Foxglove; `visualizer:=false` leaves it out). On
-machines without `launch`, `exit-decision stack` does the same (and switches the mode mid-run).
+The nodes of the one table in ``exit_decision/ros/stack_nodes.py`` (the one `exit-decision
+stack` starts from): a recorder writing a bag, the graph builder, the decision node, the
+visualizer (markers on /exit_decision/markers; `visualizer:=false` leaves it out) and the
+bridge, which waits for the others. When the bridge has run its episodes, the launch shuts
+down. `ros2 launch exit_decision exit_decision.launch.py --show-args` lists the arguments.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
+from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, plan
+
+
+def start_nodes(context):
+    """The table's nodes for the arguments given; the bridge's exit shuts the launch down."""
+    given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+    nodes = {name: Node(package='exit_decision', executable=name, name=name, parameters=[parameters],
+                        output='screen')
+             for name, parameters in plan(given)}
+    return [*nodes.values(),
+            RegisterEventHandler(OnProcessExit(target_action=nodes[BRIDGE], on_exit=[
+                EmitEvent(event=Shutdown(reason=f'{BRIDGE} has run its episodes'))]))]
+
 
 def generate_launch_description():
-    arguments = {
-        'mode': ('AGGI', 'decision mode at start'),
-        'algorithm': ('mdgqn_conditioned', 'mdgqn_conditioned (one network, every mode), gqn or mdgqn'),
-        'episodes': ('1', 'episodes the bridge runs, 0 = until stopped'),
-        'seed': ('10000', 'seed of the first episode'),
-        'timing': ('synchronous', 'synchronous or realtime'),
-        'bag_path': ('bags/exit_decision', 'bag directory (must not exist)'),
-        'visualizer': ('true', 'publish the scene as markers on /exit_decision/markers (true or false)'),
-    }
-    config = {name: LaunchConfiguration(name) for name in arguments}
     return LaunchDescription([
-        *[DeclareLaunchArgument(name, default_value=default, description=text)
-          for name, (default, text) in arguments.items()],
-        Node(package='exit_decision', executable='recorder', name='recorder',
-             parameters=[{'bag_path': config['bag_path']}]),
-        Node(package='exit_decision', executable='graph_builder', name='graph_builder'),
-        Node(package='exit_decision', executable='decision_node', name='decision_node',
-             parameters=[{'mode': config['mode'], 'algorithm': config['algorithm']}]),
-        Node(package='exit_decision', executable='visualizer', name='visualizer',
-             condition=IfCondition(config['visualizer'])),
-        Node(package='exit_decision', executable='sumo_bridge', name='sumo_bridge',
-             parameters=[{'episodes': config['episodes'], 'seed': config['seed'], 'timing': config['timing']}]),
+        *[DeclareLaunchArgument(name, default_value=argument.default, description=argument.description)
+          for name, argument in ARGUMENTS.items()],
+        OpaqueFunction(function=start_nodes),
     ])

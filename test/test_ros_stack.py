@@ -190,11 +190,11 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
                                   lambda m: latest.update(step=m.step), STREAM_QOS)
     commands = []
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, commands.append, STREAM_QOS)
-    # without a decision node the bridge waits command_timeout per decision step: 1 s leaves the
-    # restarted node ~50 s of episode to come back in (0.3 s raced a slow start on a fresh clone)
-    # the bridge starts once graph builder, decision node and this probe listen (else the probe
-    # may match after a fast episode has ended: seen on a fresh clone)
-    bridge = start_node('sumo_bridge', {**common, 'episodes': 1, 'command_timeout': 1.0, 'wait_for_subscribers': 3},
+    # episodes 0 (until stopped): however long the restart takes, there is an episode to decide
+    # in (a fixed-length episode raced it); the restarted node joins the running episode through
+    # its transient-local EVENT_STARTED, or the next one's. The bridge starts once graph
+    # builder, decision node and this probe listen.
+    bridge = start_node('sumo_bridge', {**common, 'episodes': 0, 'command_timeout': 1.0, 'wait_for_subscribers': 3},
                         root / 'bridge_restart.log')
     try:
         assert test.spin_until(lambda: latest['step'] >= 50, 60)
@@ -203,8 +203,8 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
         assert test.spin_until(lambda: latest['step'] >= stopped_at + 20, 60), 'the bridge goes on alone'
         decision = start_node('decision_node', decision_params, root / 'decision_restart2.log')
         answered = len(commands)
-        assert test.spin_until(lambda: len(commands) > answered + 5, 60), 'decisions resume after the restart'
-        assert bridge.wait(120) == 0
+        assert test.spin_until(lambda: len(commands) > answered + 5, 120), 'decisions resume after the restart'
+        assert bridge.poll() is None and stop(bridge) == 0
         assert 'no commands for step' in (root / 'bridge_restart.log').read_text()
     finally:
         test.close()
@@ -220,15 +220,48 @@ def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
         publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
         assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
         test.spin_until(lambda: False, 0.5)   # matched here first: let the recorder's side match too
+        counters = diagnostics_of(test, 'recorder')
         for step in range(200):
             publisher.publish(CavCommandArray(step=step, mode='AGGI'))
-        test.spin_until(lambda: False, 1.0)
+        for step in (0, 5, 10, 30, 35):                  # a decision node away for steps 15-25
+            publisher.publish(CavCommandArray(episode=1, step=step, mode='AGGI'))
+        assert test.spin_until(lambda: counters.get('messages') == 205, 30), counters
+        assert counters['gaps_cav_commands'] == 1 and counters['missing_steps_cav_commands'] == 3, counters
         assert stop(recorder, sig=15) == 0
     finally:
         test.close()
         stop(recorder, sig=9)
     steps = [msg.step for topic, _, _, msg in read_messages(bag) if topic == COMMANDS_TOPIC]
-    assert steps == list(range(200))
+    assert steps == list(range(200)) + [0, 5, 10, 30, 35]
+    assert f'{COMMANDS_TOPIC}: 3 step(s) in 1 gap(s)' in (tmp_path / 'recorder.log').read_text()
+
+
+def test_a_recorder_killed_with_sigkill_leaves_a_bag_repair_recovers(setup, tmp_path, capsys):
+    from exit_decision.cli import main
+    from exit_decision.ros.recorder import FLUSH_PERIOD
+
+    bag = tmp_path / 'bag'
+    recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
+    test = ProbeNode('recorder_kill_test')
+    try:
+        counters = diagnostics_of(test, 'recorder')
+        publisher = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+        assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
+        test.spin_until(lambda: False, 0.5)
+        for step in range(200):
+            publisher.publish(CavCommandArray(step=step, mode='AGGI'))
+        assert test.spin_until(lambda: counters.get('messages') == 200, 30), counters
+        test.spin_until(lambda: False, 2 * FLUSH_PERIOD + 1)   # the recorder's flush timer has run since
+        stop(recorder, sig=9)
+    finally:
+        test.close()
+        stop(recorder, sig=9)
+    assert main(['replay', str(bag)]) == 2
+    assert f'`exit-decision bag repair {bag}` recovers it' in capsys.readouterr().err
+    assert main(['bag', 'repair', str(bag)]) == 0
+    assert 'recovered 200 messages' in capsys.readouterr().out
+    steps = [msg.step for topic, _, _, msg in read_messages(bag) if topic == COMMANDS_TOPIC]
+    assert steps == list(range(200)), 'everything received a flush period before the kill'
 
 
 def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
@@ -374,13 +407,16 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     ('player', {}, 'parameter bag_path: not given'),
     ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
     ('player', {'bag_path': 'CORRUPT'}, 'not a readable bag'),
+    ('recorder', {'bag_path': 'CORRUPT'}, 'exists already; allowed: a directory that does not exist yet'),
 ])
 def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, node, parameters, expected):
     if parameters.get('bag_path') == 'CORRUPT':
         (tmp_path / 'bag').mkdir()
         (tmp_path / 'bag' / 'metadata.yaml').write_text('rosbag2_bagfile_information: [not, a, bag')
         parameters = {'bag_path': str(tmp_path / 'bag')}
-    if node != 'player':
+    if node == 'recorder':
+        parameters['config_dir'] = setup['config_dir']
+    elif node != 'player':
         parameters = {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'], **parameters}
         if node == 'sumo_bridge':
             del parameters['policy_dir']
@@ -388,3 +424,106 @@ def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, no
     assert start_node(node, parameters, log).wait(60) == 1
     text = log.read_text()
     assert expected in text and len(text.strip().splitlines()) == 1, text
+
+
+@pytest.mark.parametrize('node, parameters, fixed, live', [
+    ('sumo_bridge', {'startup_timeout': 600.0, 'wait_for_subscribers': 5},
+     {'seed': 7, 'startup_timeout': 1.0, 'wait_for_subscribers': 0, 'timing': 'realtime'},
+     {'command_timeout': 2.5, 'realtime_factor': 4.0, 'episodes': 3}),
+    ('visualizer', {}, {'config_dir': '/tmp'}, {'max_rate': 5.0}),
+    ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}),
+    ('graph_builder', {}, {'config_dir': '/tmp'}, {}),
+])
+def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp_path, node, parameters, fixed, live):
+    """Through the set_parameters service (`ros2 param set`): a parameter a node uses only at
+    start refuses a new value instead of ignoring it; one it follows takes it."""
+    parameters = {'config_dir': setup['config_dir'], **parameters}
+    if parameters.get('bag_path') == 'BAG':
+        parameters['bag_path'] = str(tmp_path / 'bag')
+    process = start_node(node, parameters, tmp_path / 'node.log')
+    test = ProbeNode('read_only_test')
+    try:
+        for name, value in fixed.items():
+            result = set_parameter(test, node, name, value)
+            assert not result.successful and 'read-only' in result.reason, (name, result.reason)
+        for name, value in live.items():
+            assert set_parameter(test, node, name, value).successful, name
+        if live:
+            assert get_parameters(test, node, list(live)) == list(live.values()), 'and takes it'
+        assert process.poll() is None
+    finally:
+        test.close()
+        stop(process)
+
+
+def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
+    """A bag of one synchronous episode's first ``steps`` steps as the stack records it: the
+    bridge's EVENT_STARTED, then states and graph of each step, 0.1 s apart. Its decision steps."""
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.graph import GraphBuilder
+    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.conversions import episode_event_to_msg, graph_to_msg, states_to_msg
+    from exit_decision.scenario.geometry import RoadGeometry
+
+    config = load_project(config_dir)
+    road = config.scenario.road
+    builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit, road.lane_count)
+    env = ExitDecisionEnv(config)
+    store = typestore()
+    try:
+        env.reset(seed=10_000)
+        result = env.sim.state
+        with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            def connection(topic, name):
+                return writer.add_connection(topic, f'exit_decision_msgs/msg/{name}', typestore=store)
+            events, states, graphs = (connection(EPISODE_TOPIC, 'EpisodeEvent'),
+                                      connection(STATES_TOPIC, 'VehicleStateArray'), connection(GRAPH_TOPIC, 'TrafficGraph'))
+            writer.write(events, 999_999_999, serialize_message(episode_event_to_msg(
+                EpisodeEvent.EVENT_STARTED, episode=0, seed=10_000, steps=0, time=0.0)))
+            for step in range(steps):
+                stamp = 1_000_000_000 + step * 100_000_000
+                msg = states_to_msg(result.vehicles, episode=0, step=result.step, step_length=0.1)
+                writer.write(states, stamp, serialize_message(msg))
+                writer.write(graphs, stamp, serialize_message(graph_to_msg(
+                    builder.build(result.vehicles), feature_set=config.graph.feature_set, episode=0,
+                    step=result.step, stamp=msg.header.stamp)))
+                result, _ = env.simulate_step(None)
+    finally:
+        env.close()
+    return len(range(0, steps, config.env.decision_interval))
+
+
+def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setup, tmp_path):
+    """The decision node decides every pass of a looped bag (the player sends the episode's
+    start on each pass); while playing, the player takes a new rate and stops looping on request."""
+    bag = tmp_path / 'bag'
+    decisions = write_episode_bag(bag, setup['config_dir'])
+    decision = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
+                          tmp_path / 'decision.log')
+    test = ProbeNode('loop_test')
+    commands = []
+    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, commands.append, STREAM_QOS)
+    player = None
+    try:
+        assert test.spin_until(lambda: test.node.count_publishers(COMMANDS_TOPIC) > 0, 60)
+        test.spin_until(lambda: False, 0.5)   # let the decision node's side of the connection match
+        # at rate 0.02 a pass of the bag (4 s) takes 200 s: two passes in 120 s need the new rate
+        player = start_node('player', {'bag_path': str(bag), 'rate': 0.02, 'loop': True, 'wait_for_subscribers': 1},
+                            tmp_path / 'player.log')
+        assert test.spin_until(lambda: commands, 60), 'the first pass is decided'
+        assert set_parameter(test, 'player', 'rate', 20.0).successful
+        assert test.spin_until(lambda: len(commands) >= 2 * decisions + 1, 120), len(commands)
+        assert set_parameter(test, 'player', 'loop', False).successful
+        assert player.wait(120) == 0, 'the pass running ends the loop'
+        test.spin_until(lambda: False, 1.0)
+        steps = [m.step for m in commands]
+        assert steps[:2 * decisions] == list(range(0, 5 * decisions, 5)) * 2, 'every pass decided again, in order'
+        assert decision.poll() is None
+    finally:
+        test.close()
+        for process in (player, decision):
+            if process is not None:
+                stop(process)

@@ -9,6 +9,7 @@ from exit_decision.config import load_project
 from exit_decision.evaluation.report import evaluate_runs, read_summary
 from exit_decision.learning.trainer import Trainer
 from exit_decision.learning.validation import INFEASIBLE, selection_score
+from exit_decision.errors import PolicyError
 from exit_decision.policy import load_policy
 
 from ros_helpers import small_config_dir
@@ -72,3 +73,18 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
         Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=3, progress=False)
     with pytest.raises(ValueError, match='a gqn/CONP run, not mdgqn/CONP'):
         Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').load_state(tmp_path / 'run' / 'last.pt')
+
+
+def test_training_can_start_from_a_policy_network_without_pre_training(config_dir, tmp_path):
+    import torch
+    config = load_project(config_dir, overrides=[TINY])
+    first = Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'first')
+    start = first.run(episodes=0, progress=False)       # pre-trained, validated: policy.pt
+    trainer = Trainer(config, 'gqn', 'CONP', 1, tmp_path / 'second')
+    trainer.pretrain = lambda: pytest.fail('a run started from --init must not pre-train')
+    trainer.run(episodes=0, init=start, progress=False)
+    ours, theirs = load_policy(tmp_path / 'second' / 'policy.pt'), load_policy(start)
+    for key, value in theirs.network.state_dict().items():
+        assert torch.equal(ours.network.state_dict()[key], value), key
+    with pytest.raises(PolicyError, match='is not this run'):
+        Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'third').load_network(start)

@@ -45,33 +45,14 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         config.mode(mode)
     runs: list[EvaluatedRun] = []
     for driver in drivers:
-        name, _, variant = driver.partition(':')   # rule_based:<driver of the sanity sweep>
-        parameters = sanity_drivers[variant] if variant else None
-        env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == 'sumo' else 'policy')
-        try:
-            controller = None if name == 'sumo' else RuleBasedDriver.for_env(env, parameters)
-            result = EvaluationResult()
-            played = run_episodes(env, controller, seeds, result, desc=driver,
-                                  show=show and show.named(driver.replace(':', '_')))
-        finally:
-            env.close()
-        label = driver.replace(':', '_')
-        runs += [EvaluatedRun(f'{label}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))),
-                              result) for mode in modes]
+        runs += driver_runs(config, driver, modes, seeds, sanity_drivers, show)
     env = ExitDecisionEnv(config, mode=modes[0])
     try:
         for path in policies:
             runs += evaluate_policy(env, load_policy(path), modes, seeds, show)
     finally:
         env.close()
-    summaries = []
-    for run in runs:
-        write_rows(out_dir / f'{run.label}.csv', run.episodes)
-        summary = summarize(run.episodes)
-        if run.result.decisions:
-            write_action_counts(out_dir / f'{run.label}_actions.csv', run.result, ActionGrid(config.env.actions))
-            summary['shield_overrides'] = (run.result.overrides / run.result.decisions, 0.0)
-        summaries.append((run.label, summary))
+    summaries = [(run.label, write_run(out_dir, run, ActionGrid(config.env.actions))) for run in runs]
     table = markdown_table(summaries)
     with open(out_dir / 'summary.csv', 'w', newline='') as stream:
         writer = csv.writer(stream)
@@ -79,7 +60,10 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         for label, summary in summaries:
             for metric, (mean, std) in summary.items():
                 writer.writerow([label, metric, mean, std])
-    header = f'# Evaluation on seeds {seeds[0]}..{seeds[-1]} ({episodes} episodes)\n\nMade by `{command}`'
+    (out_dir / 'config.json').write_text(json.dumps(config.model_dump(), indent=2), encoding='utf-8')
+    header = (f'# Evaluation on seeds {seeds[0]}..{seeds[-1]} ({episodes} episodes)\n\nMade by `{command}` '
+              f'(configuration: `config.json`; learned policies with the lane planner '
+              f'{"on" if config.env.lane_planner else "off"})')
     (out_dir / 'summary.md').write_text(f'{header}; mean ± std over episodes.\n\n{table}\n', encoding='utf-8')
     comparison = paired_comparison(runs, modes, config.scenario.max_steps)
     if comparison:
@@ -87,6 +71,37 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
         (out_dir / 'comparison.md').write_text(
             f'{header}.\n\n{comparison_markdown(comparison)}\n', encoding='utf-8')
     return table
+
+
+def driver_runs(config: ProjectConfig, driver: str, modes: Sequence[str], seeds: Sequence[int],
+                sanity_drivers: dict[str, RuleBasedConfig] | None = None,
+                show: ShowEpisodes | None = None) -> list[EvaluatedRun]:
+    """A reference driver (``sumo``, ``rule_based`` or ``rule_based:<name>``) on the seeds, in
+    its own environment: played once, scored under each mode."""
+    name, _, variant = driver.partition(':')   # rule_based:<driver of the sanity sweep>
+    parameters = sanity_drivers[variant] if variant else None
+    env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == 'sumo' else 'policy')
+    try:
+        controller = None if name == 'sumo' else RuleBasedDriver.for_env(env, parameters)
+        result = EvaluationResult()
+        played = run_episodes(env, controller, seeds, result, desc=driver,
+                              show=show and show.named(driver.replace(':', '_')))
+    finally:
+        env.close()
+    label = driver.replace(':', '_')
+    return [EvaluatedRun(f'{label}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result)
+            for mode in modes]
+
+
+def write_run(out_dir: Path, run: EvaluatedRun, grid: ActionGrid) -> dict[str, tuple[float, float]]:
+    """``<run>.csv`` (per episode) and, for a run that decided, ``<run>_actions.csv``; returns
+    the run's summary (with the shield's override share)."""
+    write_rows(out_dir / f'{run.label}.csv', run.episodes)
+    summary = summarize(run.episodes)
+    if run.result.decisions:
+        write_action_counts(out_dir / f'{run.label}_actions.csv', run.result, grid)
+        summary['shield_overrides'] = (run.result.overrides / run.result.decisions, 0.0)
+    return summary
 
 
 def write_action_counts(path: Path, result: EvaluationResult, grid) -> None:

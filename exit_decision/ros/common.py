@@ -31,10 +31,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import rclpy
+# DDS stays on this machine unless the user chose otherwise: the one place that sets it, before
+# rclpy starts, in the module every node (run_node), the launcher's and the benchmark's helper
+# node (ProbeNode) import; every process they start inherits it.
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rcl_interfaces.srv import SetParameters
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -108,6 +114,17 @@ def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
                              f'{allowed_values(descriptor, default)}') from None
 
 
+def follow(node: Node, *names: str) -> None:
+    """Apply new values of these parameters at once: ``node.<name>`` takes every accepted value
+    (the descriptor's type and range have checked it). Parameters a node reads only at start
+    are declared ``read_only`` instead, so a new value is refused rather than ignored."""
+    def apply(parameters: list[Parameter]) -> None:
+        for parameter in parameters:
+            if parameter.name in names:
+                setattr(node, parameter.name, parameter.value)
+    node.add_post_set_parameters_callback(apply)
+
+
 def check_choice(name: str, value, choices) -> None:
     """Raise ParameterError unless ``value`` is one of ``choices``."""
     if value not in choices:
@@ -129,7 +146,8 @@ class Diagnostics:
         self.node, self.name = node, name
         self.counters: dict[str, float] = {}
         self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
-        node.create_timer(1.0, self.publish)
+        # once a wall-clock second, also under use_sim_time (stamped with the node's clock)
+        node.create_timer(1.0, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def count(self, key: str, amount: float = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + amount
@@ -217,11 +235,19 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def spin(node: Node) -> None:
+    """``rclpy.spin`` that wakes at least twice a second, so Ctrl-C or SIGTERM stops the node even
+    when nothing else would wake it (under use_sim_time with no /clock no timer ever fires)."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    while node.context.ok():
+        executor.spin_once(timeout_sec=0.5)
+
+
 def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], None] | None = None) -> int:
     """Standard main: init, make the node, spin (or ``run``), clean shutdown on Ctrl-C/SIGTERM.
 
     A node that cannot start (bad config, missing or corrupt policy) says why and exits with 1."""
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     # Python's own SIGINT (KeyboardInterrupt) and ours for SIGTERM, instead of rclpy's, which
     # would invalidate the context before the node's clean-up (the recorder closing its bag).
     rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -229,7 +255,7 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
     node = None
     try:
         node = make_node()
-        (run or rclpy.spin)(node)
+        (run or spin)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ConfigError, PolicyError, ParameterError) as error:

@@ -1,11 +1,12 @@
 """Start the whole stack as separate processes on a machine without `ros2 launch`.
 
-The same executables `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with
-parameters as `--ros-args -p`: recorder, graph_builder, decision_node, visualizer (unless
-turned off), then sumo_bridge once the others are listening. Optionally switches the decision
+The nodes of the one table (``stack_nodes.plan``, which the launch file starts too), each the
+executable `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with parameters as
+`--ros-args -p`; the bridge once the others are listening. Optionally switches the decision
 mode once mid-run through the decision node's standard set_parameters service (what `ros2
 param set` calls). When the bridge has run its episodes, the others get SIGINT (SIGKILL if
 they hang), and the episode metrics (from the episode events) and the bag path are returned.
+Every process inherits the loopback default that importing ``common`` sets.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from rcl_interfaces.srv import SetParameters
 
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
+from exit_decision.ros.stack_nodes import BRIDGE, plan
 
 
 def executable(name: str) -> list[str]:
@@ -46,10 +48,9 @@ def ros_args(parameters: dict[str, object]) -> list[str]:
 
 def start_node(name: str, parameters: dict[str, object], log: Path) -> subprocess.Popen:
     """One node as its own process (own session, so a Ctrl-C in a terminal reaches only us),
-    DDS kept on this machine, output to ``log``."""
-    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    output to ``log``."""
     return subprocess.Popen(executable(name) + ros_args(parameters), stdout=open(log, 'w'),
-                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+                            stderr=subprocess.STDOUT, start_new_session=True)
 
 
 @dataclass
@@ -72,7 +73,7 @@ class StackLauncher:
 
     def check_alive(self) -> None:
         for name, process in self.processes.items():
-            if process.poll() is not None and name != 'sumo_bridge':
+            if process.poll() is not None and name != BRIDGE:
                 tail = (self.log_dir / f'{name}.log').read_text()[-2000:]
                 raise RuntimeError(f'{name} exited with code {process.returncode}:\n{tail}')
 
@@ -81,7 +82,7 @@ class StackLauncher:
             if process.poll() is None:
                 process.send_signal(signal.SIGINT)
         deadline = time.monotonic() + timeout
-        for name, process in self.processes.items():
+        for process in self.processes.values():
             try:
                 process.wait(max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
@@ -93,26 +94,21 @@ class StackLauncher:
 def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: Path, log_dir: Path,
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
-              timeout: float = 1800.0, visualizer: bool = True) -> StackRun:
+              timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False) -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
     of the first episode (through the parameter service); ``visualizer``: also publish the
-    scene as markers (recorded in the bag)."""
+    scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock."""
     if bag_path.exists():
         raise FileExistsError(f'{bag_path}: the bag directory exists already')
-    common = {'config_dir': config_dir} if config_dir else {}
-    nodes = ['recorder', 'graph_builder', 'decision_node'] + (['visualizer'] if visualizer else [])
-    listeners = len(nodes) + 1   # every node but the bridge subscribes to the states, and this launcher
-    parameters = {
-        'recorder': {'bag_path': str(bag_path)},
-        'graph_builder': dict(common),
-        'decision_node': {**common, 'mode': mode, 'algorithm': algorithm,
-                          **({'policy_dir': policy_dir} if policy_dir else {})},
-        'visualizer': dict(common),
-        'sumo_bridge': {**common, 'episodes': episodes, 'seed': seed, 'timing': timing,
-                        'wait_for_subscribers': listeners},
-    }
+    # this launcher's helper node listens to the states too: the bridge waits for it as well
+    started = plan({'mode': mode, 'algorithm': algorithm, 'episodes': episodes, 'seed': seed, 'timing': timing,
+                    'bag_path': bag_path, 'visualizer': visualizer, 'use_sim_time': use_sim_time,
+                    'config_dir': config_dir, 'policy_dir': policy_dir}, extra_listeners=1)
+    parameters = dict(started)
     for name, values in (extra or {}).items():
         parameters[name].update(values)
+    nodes = [name for name, _ in started if name != BRIDGE]
+    listeners = parameters[BRIDGE]['wait_for_subscribers']
     launcher = StackLauncher(parameters, log_dir)
     run = StackRun(bag_path)
     probe = ProbeNode('stack_launcher')
@@ -136,15 +132,15 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
         deadline = time.monotonic() + 120.0
         # the recorder records the markers from the first one on
         while (node.count_subscribers(STATES_TOPIC) < listeners or not client.service_is_ready()
-               or visualizer and node.count_publishers(MARKERS_TOPIC) < 1):
+               or 'visualizer' in nodes and node.count_publishers(MARKERS_TOPIC) < 1):
             launcher.check_alive()
             if time.monotonic() > deadline:
                 raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
             executor.spin_once(timeout_sec=0.2)
-        launcher.start('sumo_bridge')
+        launcher.start(BRIDGE)
         switched = switch_to is None
         deadline = time.monotonic() + timeout
-        while launcher.processes['sumo_bridge'].poll() is None:
+        while launcher.processes[BRIDGE].poll() is None:
             launcher.check_alive()
             if time.monotonic() > deadline:
                 raise TimeoutError(f'the stack did not finish within {timeout} s')

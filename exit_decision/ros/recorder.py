@@ -2,9 +2,18 @@
 
 Subscriptions take the serialized CDR (raw) and store it unchanged, stamped with the receive
 time as rosbag2 does. Ctrl-C or SIGTERM closes the bag properly: everything received is in
-it and the bag is readable (only SIGKILL can leave an unfinished file). By default it records
-the stack's topics (``bags.DEFAULT_TOPICS``), the visualizer's markers included, so a bag
-opened in Foxglove or RViz shows the scene with no extra step.
+it and the bag is readable. Once a second the recorder closes the chunk it is filling and
+flushes the file, so a recorder killed with SIGKILL loses at most about a second: its bag
+has every complete chunk, and ``exit-decision bag repair`` makes it readable. By default it
+records the stack's topics (``bags.DEFAULT_TOPICS``), the visualizer's markers included, so
+a bag opened in Foxglove or RViz shows the scene with no extra step.
+
+Memory stays flat however long it records: messages go to the file a chunk (1 MB, or a
+second) at a time; what stays in memory per chunk is its index entry (about 100 bytes).
+
+Gaps in the recorded step sequences of states, graphs (every step) and commands (every
+decision step) are counted per topic on /diagnostics (``gaps_<topic>``, ``missing_steps_<topic>``)
+and in the summary at close: a node that died and came back leaves such a hole.
 """
 from __future__ import annotations
 
@@ -12,31 +21,58 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 
 from exit_decision.ros.bags import DEFAULT_TOPICS, KNOWN_TOPICS, message_class, topic_qos, typestore
-from exit_decision.ros.common import RECORDER_QOS, Diagnostics, describe, run_node
+from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
+                                      ParameterError, declare, declare_config, describe, run_node)
+from exit_decision.step_gaps import StepGaps, episode_and_step
+
+FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only
+
+
+def flush(writer: Writer) -> None:
+    """Close the chunk being filled and flush the file (rosbags 0.11.9's mcap writer closes a
+    chunk only at 1 MB: at real time that is many seconds a SIGKILL would lose)."""
+    storage = writer.storage
+    if storage.chunk.bio.tell():
+        storage.close_chunk()
+    storage.bio.flush()
 
 
 class Recorder(Node):
     def __init__(self):
         super().__init__('recorder')
+        config = declare_config(self)
         default_path = f'bags/exit_decision_{datetime.now():%Y%m%d_%H%M%S}'
-        self.path = Path(self.declare_parameter('bag_path', default_path, describe(
-            'directory of the bag to write (must not exist)', read_only=True)).value)
-        topics = list(self.declare_parameter('topics', list(DEFAULT_TOPICS), describe(
+        self.path = Path(declare(self, 'bag_path', default_path, describe(
+            'directory of the bag to write', read_only=True, constraints='a directory that does not exist yet')))
+        topics = list(declare(self, 'topics', list(DEFAULT_TOPICS), describe(
             'topics to record; types of others than the known ones are found on the ROS graph',
-            read_only=True)).value)
+            read_only=True)))
+        if self.path.exists():
+            raise ParameterError(f'parameter bag_path: {self.path} exists already; allowed: a directory that does '
+                                 f'not exist yet (the recorder never writes into an existing bag)')
         self.store = typestore()
-        self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self.writer.open()
+        try:
+            self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            self.writer.open()
+        except (WriterError, OSError) as error:
+            raise ParameterError(f'parameter bag_path: {self.path}: cannot write a bag there ({error}); '
+                                 f'allowed: a directory that does not exist yet, in a writable place') from None
         self.connections = {}
         self.counts = dict.fromkeys(topics, 0)
+        interval = config.env.decision_interval
+        self.gaps = {topic: StepGaps(stride) for topic, stride in
+                     ((STATES_TOPIC, 1), (GRAPH_TOPIC, 1), (COMMANDS_TOPIC, interval)) if topic in topics}
         self.diagnostics = Diagnostics(self, 'recorder')
         self.waiting = [topic for topic in topics if not self.subscribe(topic, KNOWN_TOPICS.get(topic))]
         if self.waiting:
             self.discovery = self.create_timer(0.5, self.discover)
+        # wall clock (steady), also under use_sim_time: a second of a 50x run is 50 s of simulation
+        self.create_timer(FLUSH_PERIOD, lambda: flush(self.writer), clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'recording {", ".join(topics)} to {self.path}')
 
     def subscribe(self, topic: str, type_name: str | None) -> bool:
@@ -60,11 +96,25 @@ class Recorder(Node):
         self.writer.write(self.connections[topic], time.time_ns(), raw)
         self.counts[topic] += 1
         self.diagnostics.count('messages')
+        gaps = self.gaps.get(topic)
+        if gaps is not None:
+            missing = gaps.see(*episode_and_step(raw))
+            if missing:
+                name = topic.rsplit('/', 1)[-1]
+                self.diagnostics.count(f'gaps_{name}')
+                self.diagnostics.count(f'missing_steps_{name}', missing)
+                self.get_logger().warning(f'{topic}: {missing} step(s) missing before step {gaps.last} of '
+                                          f'episode {gaps.episode}', throttle_duration_sec=5.0)
+
+    def summary(self) -> str:
+        counts = ', '.join(f'{topic}: {count}' for topic, count in self.counts.items())
+        holes = ', '.join(f'{topic}: {g.missing} step(s) in {g.gaps} gap(s)' for topic, g in self.gaps.items()
+                          if g.gaps) or 'none'
+        return f'{self.path} ({counts}); gaps in the step sequences: {holes}'
 
     def destroy_node(self) -> None:
         self.writer.close()
-        summary = ', '.join(f'{topic}: {count}' for topic, count in self.counts.items())
-        self.get_logger().info(f'bag closed: {self.path} ({summary})')
+        self.get_logger().info(f'bag closed: {self.summary()}')
         super().destroy_node()
 
 

@@ -4,6 +4,7 @@ For every recorded command array, the policy (the recorded one, another mode, or
 checkpoint; a conditioned one at the recorded or given mode's weights) decides again on the
 graph and states of the same step, under the shield; the
 report counts the CAV commands that match the recorded ones and lists where they differ.
+A bag that is missing, empty (no recorded commands), unfinished or corrupt raises BagError.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig
 from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
 from exit_decision.reward import weight_input
-from exit_decision.ros.bags import read_messages
+from exit_decision.ros.bags import BagError, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import commands_from_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
@@ -46,12 +47,16 @@ class ReplayReport:
 
 def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: str | None = None,
                      algorithm: str | None = None, policy_file: Path | None = None) -> ReplayReport:
+    """BagError if the bag cannot be read or holds no recorded commands."""
     graphs, states, recorded = {}, {}, []
     for topic, _, _, msg in read_messages(bag, {GRAPH_TOPIC, STATES_TOPIC, COMMANDS_TOPIC}):
         key = (msg.episode, msg.step)
         {GRAPH_TOPIC: graphs, STATES_TOPIC: states}.get(topic, {})[key] = msg
         if topic == COMMANDS_TOPIC:
             recorded.append(msg)
+    if not recorded:
+        raise BagError(f'{bag}: no recorded commands ({COMMANDS_TOPIC}); allowed: a bag the stack recorded with '
+                       f'its decision node running')
     grid = ActionGrid(config.env.actions)
     shield = Shield.of(config, grid, RoadGeometry.of(config.scenario.road))
     planner = LanePlanner.of(config, shield)

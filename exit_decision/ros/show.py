@@ -9,12 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from rosbags.rosbag2 import Reader, ReaderError
 from tqdm import tqdm
 
 from exit_decision.config import ProjectConfig
 from exit_decision.errors import UsageError
-from exit_decision.ros.bags import read_messages
+from exit_decision.ros.bags import BagError, open_bag, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import (
     MessageError,
@@ -49,13 +48,12 @@ class Shown:
 
 def message_count(bag: Path) -> int:
     """Messages of the topics ``show`` reads; a bag that cannot be read is the user's to fix."""
-    if not bag.exists():
-        raise UsageError(f'{bag}: no such bag (give the directory the recorder wrote)')
     try:
-        with Reader(bag) as reader:
-            counts = {c.topic: c.msgcount for c in reader.connections}
-    except (ReaderError, OSError) as error:
-        raise UsageError(f'{bag}: not a readable rosbag2 bag ({error})') from error
+        reader = open_bag(bag)
+    except BagError as error:
+        raise UsageError(str(error)) from None
+    counts = {c.topic: c.msgcount for c in reader.connections}
+    reader.close()
     if not counts.get(STATES_TOPIC):
         raise UsageError(f'{bag}: no {STATES_TOPIC} messages; show needs the vehicle states')
     return sum(n for topic, n in counts.items() if topic in TOPICS)

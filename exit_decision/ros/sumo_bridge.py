@@ -29,7 +29,7 @@ from rosgraph_msgs.msg import Clock
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC,
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
-                                      declare_config, describe, run_node)
+                                      declare_config, describe, follow, run_node)
 from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of, states_to_msg
 from exit_decision.scenario.simulation import CommandError
 from exit_decision.traffic import CavCommand
@@ -46,21 +46,25 @@ class SumoBridge(Node):
             'synchronous: wait for the commands of each decision step; realtime: step on a wall timer',
             read_only=True, constraints='synchronous | realtime'))
         check_choice('timing', self.timing, ('synchronous', 'realtime'))
+        # applied live (follow below): the timeout from the next wait, the factor from the next
+        # step, the episode count at the next episode's start; the rest is used at start only
         self.command_timeout = p('command_timeout', 1.0, describe(
-            '[s] synchronous mode: longest wait for the commands of a decision step',
+            '[s] synchronous mode: longest wait for the commands of a decision step; applies from the next wait',
             float_range=(0.001, 60.0)))
         self.realtime_factor = p('realtime_factor', 1.0, describe(
-            'realtime mode: simulated seconds per wall-clock second', float_range=(0.01, 1000.0)))
-        self.episodes = p('episodes', 1, describe('episodes to run, 0 = until stopped',
-                                                  integer_range=(0, 1_000_000)))
-        self.seed = p('seed', 10_000, describe('seed of the first episode (then +1 each)',
+            'realtime mode: simulated seconds per wall-clock second; applies from the next step',
+            float_range=(0.01, 1000.0)))
+        self.episodes = p('episodes', 1, describe('episodes to run, 0 = until stopped; a new value applies '
+                                                  'before the next episode starts', integer_range=(0, 1_000_000)))
+        self.seed = p('seed', 10_000, describe('seed of the first episode (then +1 each)', read_only=True,
                                                integer_range=(0, 2**31 - 1)))
         self.startup_timeout = p('startup_timeout', 30.0, describe(
             '[s] synchronous policy mode: wait this long at start for a commands publisher and a states '
-            'subscriber', float_range=(0.0, 3600.0)))
+            'subscriber', read_only=True, float_range=(0.0, 3600.0)))
         self.wait_for_subscribers = p('wait_for_subscribers', 1, describe(
             'at start, wait (up to startup_timeout) for this many subscribers of the states, e.g. a '
-            'recorder that must not miss the first step', integer_range=(0, 100)))
+            'recorder that must not miss the first step', read_only=True, integer_range=(0, 100)))
+        follow(self, 'command_timeout', 'realtime_factor', 'episodes')
         cav_driver = p('cav_driver', 'policy', describe(
             'policy: CAVs follow the commands; sumo: SUMO drives them (reference runs)', read_only=True,
             constraints='policy | sumo'))
@@ -175,7 +179,6 @@ class SumoBridge(Node):
         self.publish_event(EpisodeEvent.EVENT_STARTED, seed, result)
         # the nodes start their sequence checks on this event: let it arrive before the states
         self.events_pub.wait_for_all_acked(Duration(seconds=1.0))
-        period = self.step_length / self.realtime_factor
         next_tick = time.monotonic()
         while rclpy.ok(context=self.context):
             self.publish_state(result)
@@ -185,7 +188,7 @@ class SumoBridge(Node):
                 commands = self.wait_for_commands(result.step) if result.step % self.interval == 0 else None
                 self.executor_.spin_once(timeout_sec=0.0)   # parameter services, late messages
             else:
-                next_tick += period
+                next_tick += self.step_length / self.realtime_factor
                 while (wait := next_tick - time.monotonic()) > 0:
                     self.executor_.spin_once(timeout_sec=wait)
                 commands = self.take_commands()

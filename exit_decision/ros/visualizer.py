@@ -30,6 +30,7 @@ from exit_decision.ros.common import (
     declare,
     declare_config,
     describe,
+    follow,
     run_node,
 )
 from exit_decision.ros.conversions import (
@@ -67,8 +68,9 @@ class Visualizer(Node):
         super().__init__('visualizer')
         config = declare_config(self)
         self.max_rate = declare(self, 'max_rate', 20.0, describe(
-            '[Hz] most marker arrays per wall-clock second; 0: one per vehicle-state message',
+            '[Hz] most marker arrays per wall-clock second; 0: one per vehicle-state message; applies at once',
             float_range=(0.0, 1000.0)))
+        follow(self, 'max_rate')
         road = config.scenario.road
         layout = RoadLayout.of(RoadGeometry.of(road), road)
         self.frames = FrameBuilder(layout, config.scenario.step_length)

@@ -1,0 +1,86 @@
+"""The stack's nodes in one table: the launch file (launch/exit_decision.launch.py) and
+`exit-decision stack` (ros/launcher.py) both start them from ``plan()``.
+
+Free of rclpy and of `launch`, so the launch file, the launcher and the tests read the same
+rows on any machine. Each launch argument is passed, as the parameter of the same name, to the
+nodes that list it; an empty value leaves the node's own default. The bridge comes last and
+waits until every other node of the plan that listens to the vehicle states is there.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+BRIDGE = 'sumo_bridge'
+
+
+@dataclass(frozen=True)
+class Argument:
+    default: str
+    description: str
+    kind: type = str    # what the text becomes: str, int or bool (true/false)
+
+
+@dataclass(frozen=True)
+class StackNode:
+    executable: str                 # a console_scripts entry point of setup.py; also the node's name
+    arguments: tuple[str, ...]      # launch arguments it takes as parameters
+    listens_to_states: bool         # subscribes to the vehicle states: the bridge waits for it
+    enabled_by: str = ''            # a true/false argument that leaves it out when false
+
+
+ARGUMENTS: dict[str, Argument] = {
+    'mode': Argument('AGGI', 'decision mode at start'),
+    'algorithm': Argument('mdgqn_conditioned', 'mdgqn_conditioned (one network, every mode), gqn or mdgqn'),
+    'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
+    'seed': Argument('10000', 'seed of the first episode', int),
+    'timing': Argument('synchronous', 'synchronous or realtime'),
+    'bag_path': Argument('bags/exit_decision', 'bag directory (must not exist)'),
+    'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
+    'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
+    'config_dir': Argument('', 'directory with the YAML config; empty: the installed share/exit_decision/config'),
+    'policy_dir': Argument('', 'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies'),
+}
+
+NODES: tuple[StackNode, ...] = (
+    StackNode('recorder', ('bag_path', 'config_dir', 'use_sim_time'), listens_to_states=True),
+    StackNode('graph_builder', ('config_dir', 'use_sim_time'), listens_to_states=True),
+    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'algorithm', 'use_sim_time'),
+              listens_to_states=True),
+    StackNode('visualizer', ('config_dir', 'use_sim_time'), listens_to_states=True, enabled_by='visualizer'),
+    StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time'), listens_to_states=False),
+)
+
+_BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
+
+
+def typed(name: str, text: str):
+    """The value of argument ``name`` given as ``text``; ValueError naming it and what is allowed."""
+    kind = ARGUMENTS[name].kind
+    try:
+        return _BOOLEANS[text.lower()] if kind is bool else kind(text)
+    except (KeyError, ValueError):
+        allowed = 'true or false' if kind is bool else 'an integer' if kind is int else 'a string'
+        raise ValueError(f'argument {name}: {text!r} is not allowed; allowed: {allowed}') from None
+
+
+def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[str, dict[str, object]]]:
+    """(executable, parameters) of each node to start, in order, the bridge last, for these
+    argument values (text as `ros2 launch` gives it, or Python values; missing: the default).
+    ``extra_listeners``: state subscribers outside the table the bridge waits for too (the
+    launcher's own helper node)."""
+    unknown = sorted(set(given) - set(ARGUMENTS))
+    if unknown:
+        raise ValueError(f'unknown argument(s) {", ".join(unknown)}; known: {", ".join(ARGUMENTS)}')
+    text = {name: argument.default for name, argument in ARGUMENTS.items()}
+    text.update({name: str(value).lower() if isinstance(value, bool) else str(value)
+                 for name, value in given.items()})
+    nodes = [node for node in NODES if not node.enabled_by or typed(node.enabled_by, text[node.enabled_by])]
+    listeners = sum(node.listens_to_states for node in nodes) + extra_listeners
+    started = []
+    for node in nodes:
+        parameters = {name: typed(name, text[name]) for name in node.arguments if text[name] != ''}
+        if node.executable == BRIDGE:
+            parameters['wait_for_subscribers'] = listeners
+        started.append((node.executable, parameters))
+    return started

@@ -1,0 +1,87 @@
+"""Scenario variants (config/variants.yaml) and the compare sweep on a local Ray."""
+import re
+
+import pytest
+import yaml
+
+from exit_decision.cli import main
+from exit_decision.config import ConfigError, default_config_dir, load_project
+from exit_decision.experiments.compare import load_variants
+from exit_decision.scenario.sumo_inputs import network_sources, routes_source
+
+HUMANS = ('HV1', 'HV2', 'HV3')
+
+
+def _without(dump: dict, key: str) -> dict:
+    return {k: v for k, v in dump.items() if k != key}
+
+
+def test_each_variant_changes_only_its_factor_by_the_stated_amount():
+    base = load_project().scenario
+    variants = {name: config.scenario for name, config in load_variants(default_config_dir() / 'variants.yaml').items()}
+    assert list(variants) == ['base', 'politeness_0.4', 'politeness_0', 'density_1.25', 'density_1.45',
+                              'length_0.75', 'length_0.5']
+    assert variants['base'] == base
+    for value in (0.4, 0.0):
+        scenario = variants[f'politeness_{value:g}']
+        routes = routes_source(scenario)
+        for name in HUMANS:
+            assert re.search(rf'id="{name}"[^>]* lcCooperative="{value}"', routes)
+        assert re.search(r'id="CAV"[^>]* lcCooperative="1.0"', routes)   # the method's own driver keeps 1
+        assert _without(scenario.model_dump(), 'vehicle_types') == _without(base.model_dump(), 'vehicle_types')
+    for factor in (1.25, 1.45):
+        scenario = variants[f'density_{factor:g}']
+        assert scenario.total_vehicles == round(base.total_vehicles * factor)
+        for name, cls in scenario.vehicle_classes.items():
+            assert abs(cls.count - base.vehicle_classes[name].count * factor) < 1
+            assert cls.insertion_probability == pytest.approx(base.vehicle_classes[name].insertion_probability * factor)
+        assert _without(scenario.model_dump(), 'vehicle_classes') == _without(base.model_dump(), 'vehicle_classes')
+    for factor in (0.75, 0.5):
+        scenario = variants[f'length_{factor:g}']
+        edges = network_sources(scenario.road)['edg.xml']
+        for edge, length in zip(('Highway_0', 'Highway_1', 'Highway_2'), base.road.highway_lengths):
+            assert re.search(rf'id="{edge}"[^>]* length="{length * factor}"', edges)
+        assert scenario.road.ramp_length == base.road.ramp_length
+        assert _without(scenario.model_dump(), 'road') == _without(base.model_dump(), 'road')
+
+
+def test_a_bad_key_in_a_cell_is_named_with_the_cell(tmp_path):
+    path = tmp_path / 'variants.yaml'
+    path.write_text(yaml.safe_dump({'cells': {'short': {'road': {'highway_length': [1.0, 2.0, 3.0]}}}}))
+    with pytest.raises(ConfigError, match=r'(?s)cells\.short .*road\.highway_length'):
+        load_variants(path)
+    with pytest.raises(ConfigError, match=r"no cell 'long'"):
+        load_variants(path, only=['long'])
+
+
+#: 9 vehicles fit a 12-row graph; 40 do not, so every cell of ``overfull`` fails in its task
+TINY = {'max_steps': 300, 'vehicle_classes': {'HV1': {'count': 3}, 'HV2': {'count': 2}, 'HV3': {'count': 1},
+                                              'CAV': {'count': 3}}}
+OVERFULL = {'vehicle_classes': {name: {'count': 10, 'insertion_probability': 0.5} for name in (*HUMANS, 'CAV')}}
+
+
+def test_compare_writes_a_csv_per_cell_reports_a_failing_cell_and_a_rerun_skips_done_cells(tmp_path, capsys):
+    variants, override, out = tmp_path / 'variants.yaml', tmp_path / 'graph.yaml', tmp_path / 'out'
+    variants.write_text(yaml.safe_dump({'cells': {'tiny': TINY, 'overfull': OVERFULL}}))
+    override.write_text(yaml.safe_dump({'graph': {'max_vehicles': 12}}))
+    command = ['compare', '--variants', str(variants), '--override', str(override), '--method', 'rule_based',
+               '--method', 'sumo', '--mode', 'AGGP', '--mode', 'CONP', '--episodes', '2', '--out', str(out),
+               '--workers', '2', '--retries', '0']
+    assert main(command) == 1
+    printed = capsys.readouterr().out
+    assert '4 cells: 2 run now, 0 already done (skipped), 2 failed' in printed
+    assert re.search(r'failed: rule_based on overfull: GraphCapacityError: \d+ vehicles on the road but '
+                     r'graph.max_vehicles = 12', printed)
+    written = sorted(path.name for path in (out / 'tiny').glob('*.csv'))
+    assert written == ['rule_based_AGGP.csv', 'rule_based_AGGP_actions.csv', 'rule_based_CONP.csv',
+                       'rule_based_CONP_actions.csv', 'sumo_AGGP.csv', 'sumo_CONP.csv']
+    for name in ('rule_based_AGGP.csv', 'sumo_CONP.csv'):
+        seeds = [row.split(',')[0] for row in (out / 'tiny' / name).read_text().splitlines()[1:]]
+        assert seeds == ['10000', '10001']
+    assert not list((out / 'overfull').glob('*.csv'))
+    stamps = {path: path.stat().st_mtime_ns for path in (out / 'tiny').iterdir()}
+
+    assert main([*command, '--variant', 'tiny']) == 0
+    assert '2 cells: 0 run now, 2 already done (skipped), 0 failed' in capsys.readouterr().out
+    assert {path: path.stat().st_mtime_ns for path in (out / 'tiny').iterdir()} == stamps
+    assert '## tiny' in (out / 'summary.md').read_text()

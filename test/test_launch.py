@@ -1,0 +1,215 @@
+"""The one node table behind the launch file and `exit-decision stack`, use_sim_time, and the
+loopback default every process of the project starts with."""
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import threading
+import types
+from pathlib import Path
+
+import pytest
+
+from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODES, plan
+
+REPO = Path(__file__).resolve().parent.parent
+LAUNCH_FILE = REPO / 'launch' / 'exit_decision.launch.py'
+
+
+class Recorded:
+    """Stands in for a `launch` / `launch_ros` class (not installable here): keeps its arguments."""
+
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+def launch_description(monkeypatch, given: dict[str, str]):
+    """The launch file's actions, its nodes resolved for ``given`` (launch-style text values)."""
+    names = {'launch': ['LaunchDescription'],
+             'launch.actions': ['DeclareLaunchArgument', 'EmitEvent', 'OpaqueFunction', 'RegisterEventHandler'],
+             'launch.event_handlers': ['OnProcessExit'], 'launch.events': ['Shutdown'],
+             'launch_ros': [], 'launch_ros.actions': ['Node']}
+    for module, classes in names.items():
+        stub = types.ModuleType(module)
+        for name in classes:
+            setattr(stub, name, type(name, (Recorded,), {}))
+        monkeypatch.setitem(sys.modules, module, stub)
+
+    class LaunchConfiguration:
+        def __init__(self, name):
+            self.name = name
+
+        def perform(self, context):
+            return context.get(self.name, ARGUMENTS[self.name].default)
+
+    substitutions = types.ModuleType('launch.substitutions')
+    substitutions.LaunchConfiguration = LaunchConfiguration
+    monkeypatch.setitem(sys.modules, 'launch.substitutions', substitutions)
+    spec = importlib.util.spec_from_file_location('exit_decision_launch', LAUNCH_FILE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    actions = module.generate_launch_description().args[0]
+    declared = {a.args[0]: a.kwargs['default_value'] for a in actions if type(a).__name__ == 'DeclareLaunchArgument'}
+    opaque = [a for a in actions if type(a).__name__ == 'OpaqueFunction']
+    return declared, opaque[0].kwargs['function'](given)
+
+
+@pytest.mark.parametrize('given', [{}, {'visualizer': 'false', 'config_dir': '/tmp/c', 'episodes': '3'}])
+def test_launch_file_starts_the_tables_nodes_and_shuts_down_when_the_bridge_ends(monkeypatch, given):
+    declared, actions = launch_description(monkeypatch, given)
+    assert declared == {name: argument.default for name, argument in ARGUMENTS.items()}
+    nodes = [a for a in actions if type(a).__name__ == 'Node']
+    assert [(n.kwargs['executable'], n.kwargs['parameters'][0]) for n in nodes] == plan(given)
+    assert all(n.kwargs['package'] == 'exit_decision' and n.kwargs['name'] == n.kwargs['executable'] for n in nodes)
+    handlers = [a.args[0] for a in actions if type(a).__name__ == 'RegisterEventHandler']
+    assert len(handlers) == 1 and handlers[0].kwargs['target_action'].kwargs['executable'] == BRIDGE
+    assert [type(e.kwargs['event']).__name__ for e in handlers[0].kwargs['on_exit']] == ['Shutdown']
+
+
+def test_the_bridge_waits_for_every_state_listener_of_the_plan():
+    full, without = plan({}), plan({'visualizer': False})
+    assert [name for name, _ in full] == [node.executable for node in NODES] and full[-1][0] == BRIDGE
+    assert 'visualizer' not in dict(without)
+    assert dict(full)[BRIDGE]['wait_for_subscribers'] == 4
+    assert dict(without)[BRIDGE]['wait_for_subscribers'] == 3
+    assert dict(plan({}, extra_listeners=1))[BRIDGE]['wait_for_subscribers'] == 5
+
+
+def test_arguments_become_typed_parameters_and_empty_ones_keep_the_nodes_default():
+    nodes = dict(plan({'episodes': '2', 'use_sim_time': 'true', 'policy_dir': ''}))
+    assert nodes[BRIDGE]['episodes'] == 2 and nodes[BRIDGE]['use_sim_time'] is True
+    assert all(node['use_sim_time'] is True for node in nodes.values())
+    assert 'policy_dir' not in nodes['decision_node'] and 'config_dir' not in nodes['graph_builder']
+    with pytest.raises(ValueError, match="argument visualizer: 'yes' is not allowed; allowed: true or false"):
+        plan({'visualizer': 'yes'})
+    with pytest.raises(ValueError, match='unknown argument'):
+        plan({'speed': '3'})
+
+
+def test_every_node_of_the_table_is_a_console_script():
+    import ast
+    tree = ast.parse((REPO / 'setup.py').read_text())
+    scripts = next(node for node in ast.walk(tree) if isinstance(node, ast.Dict)
+                   and any(isinstance(k, ast.Constant) and k.value == 'console_scripts' for k in node.keys))
+    entries = [item.value.split('=')[0].strip() for item in scripts.values[0].elts]
+    assert {node.executable for node in NODES} | {'player'} <= set(entries)
+
+
+# --- loopback default ------------------------------------------------------------------------
+
+def python(code: str, **env_changes) -> str:
+    env = {key: value for key, value in os.environ.items() if key != 'ROS_AUTOMATIC_DISCOVERY_RANGE'}
+    env.update(env_changes)
+    result = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=120,
+                            cwd=REPO, check=False)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.strip()
+
+
+LAUNCHER_CHILD = '''
+import os, time
+from pathlib import Path
+from exit_decision.ros.launcher import start_node
+from exit_decision.ros.common import ProbeNode
+probe = ProbeNode('loopback_probe')   # the launcher's helper node: created in this same process
+child = start_node('graph_builder', {}, Path(os.devnull))
+environ = b''
+while b'ROS_AUTOMATIC_DISCOVERY_RANGE' not in environ and child.poll() is None:
+    time.sleep(0.05)
+    environ = Path(f'/proc/{child.pid}/environ').read_bytes()
+child.kill(); child.wait(); probe.close()
+own = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+theirs = dict(v.split(b'=', 1) for v in environ.split(b'\\0') if b'=' in v)[b'ROS_AUTOMATIC_DISCOVERY_RANGE'].decode()
+print(own, theirs)
+'''
+
+
+def test_the_launcher_its_helper_node_and_its_nodes_keep_dds_on_loopback_by_default():
+    assert python(LAUNCHER_CHILD) == 'LOCALHOST LOCALHOST'
+
+
+def test_a_users_explicit_discovery_range_wins():
+    # OFF: no discovery at all, so this test never reaches beyond the machine either
+    assert python(LAUNCHER_CHILD, ROS_AUTOMATIC_DISCOVERY_RANGE='OFF') == 'OFF OFF'
+
+
+def test_every_entry_point_takes_the_default_from_one_place():
+    """Every console script and the launcher import ``common`` (which sets the default), and
+    ``common`` is the only module that starts rclpy."""
+    import ast
+    starters = set()
+    for path in (REPO / 'exit_decision').rglob('*.py'):
+        if 'rclpy.init(' in path.read_text():
+            starters.add(path.relative_to(REPO).as_posix())
+    assert starters == {'exit_decision/ros/common.py'}
+    for module in [node.executable for node in NODES] + ['player', 'launcher']:
+        tree = ast.parse((REPO / 'exit_decision' / 'ros' / f'{module}.py').read_text())
+        imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+        assert 'exit_decision.ros.common' in imported, module
+    code = 'import os, exit_decision.ros.common; print(os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"])'
+    assert python(code) == 'LOCALHOST'
+
+
+# --- use_sim_time --------------------------------------------------------------------------------
+
+def test_sigterm_stops_a_decision_node_on_sim_time_with_no_clock(tmp_path):
+    from rcl_interfaces.srv import GetParameters
+
+    from exit_decision.ros.common import ProbeNode
+    from exit_decision.ros.launcher import start_node
+
+    process = start_node('decision_node', {'use_sim_time': True, 'modes': ['AGGI'],
+                                           'algorithms': ['mdgqn_conditioned']}, tmp_path / 'decision.log')
+    probe = ProbeNode('sim_time_probe')
+    try:
+        client = probe.node.create_client(GetParameters, '/decision_node/get_parameters')
+        assert probe.spin_until(client.service_is_ready, 60), 'decision_node did not come up'
+        future = client.call_async(GetParameters.Request(names=['use_sim_time']))
+        probe.executor.spin_until_future_complete(future, timeout_sec=60)   # answered once it spins
+        assert future.result() is not None and future.result().values[0].bool_value
+        process.send_signal(signal.SIGTERM)
+        process.wait(30)
+    finally:
+        probe.close()
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 0, (tmp_path / 'decision.log').read_text()[-2000:]
+
+
+def test_every_node_runs_on_the_bridges_clock(tmp_path):
+    """The stack with use_sim_time: an episode ends, and every node stamps its diagnostics with
+    simulation time (seconds since the episode's start, not since 1970)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from exit_decision.ros.common import DIAGNOSTICS_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.launcher import run_stack
+
+    from ros_helpers import random_policies, small_config_dir
+
+    config_dir = small_config_dir(tmp_path / 'config')
+    policies = random_policies(config_dir, tmp_path / 'policies')
+    stamps: dict[str, list[float]] = {}
+    probe = ProbeNode('clock_probe')
+    probe.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, lambda msg: [
+        stamps.setdefault(s.name, []).append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        for s in msg.status], STREAM_QOS)
+    done = threading.Event()
+    spinner = threading.Thread(target=lambda: probe.spin_until(done.is_set, 600))
+    spinner.start()
+    try:
+        run = run_stack(mode='AGGI', algorithm='mdgqn_conditioned', episodes=2, seed=10_000,
+                        bag_path=tmp_path / 'bag', log_dir=tmp_path / 'logs', config_dir=str(config_dir),
+                        policy_dir=str(policies), timeout=300, use_sim_time=True)
+    finally:
+        done.set()
+        spinner.join()
+        probe.close()
+    assert len(run.episodes) == 2
+    assert sorted(run.return_codes) == sorted(name for name, _ in plan({}))
+    episode_time = sum(e['steps'] for e in run.episodes) * 0.1 + 1.0
+    for name in ('sumo_bridge', 'graph_builder', 'decision_node', 'recorder', 'visualizer'):
+        assert name in stamps, f'no diagnostics from {name}'
+        assert max(stamps[name]) < episode_time, f'{name} is not on the simulation clock: {stamps[name][-3:]}'
+    assert max(max(values) for values in stamps.values()) > 0, 'the clock advanced'

@@ -1,0 +1,51 @@
+"""package.xml declares a rosdep key for every third-party import (rosdep_keys.yaml maps them)."""
+import ast
+import re
+import sys
+from xml.etree import ElementTree
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def third_party_imports() -> dict[str, str]:
+    """Top-level name of every absolute import in exit_decision/ and launch/ that is neither
+    the standard library nor this package -> a file importing it."""
+    found = {}
+    for path in sorted([*(REPO / 'exit_decision').rglob('*.py'), *(REPO / 'launch').glob('*.py')]):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                modules = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                modules = [node.module]
+            else:
+                continue
+            for module in modules:
+                top = module.split('.')[0]
+                if top not in sys.stdlib_module_names and top != 'exit_decision':
+                    found.setdefault(top, path.relative_to(REPO).as_posix())
+    return found
+
+
+def test_every_import_is_mapped_to_a_declared_rosdep_key():
+    keys = yaml.safe_load((REPO / 'rosdep_keys.yaml').read_text())['imports']
+    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot().iter('exec_depend')}
+    imports = third_party_imports()
+    unmapped = {name: path for name, path in imports.items() if name not in keys}
+    assert not unmapped, f'imports without a rosdep key in rosdep_keys.yaml: {unmapped}'
+    missing = {keys[name] for name in imports} - declared
+    assert not missing, f'rosdep keys not declared in package.xml: {sorted(missing)}'
+    assert declared == set(keys.values()), 'package.xml declares exactly the mapped keys'
+    assert set(keys) == set(imports), f'mapped but never imported: {sorted(set(keys) - set(imports))}'
+
+
+def test_pip_keys_name_distributions_the_project_pins():
+    keys = yaml.safe_load((REPO / 'rosdep_keys.yaml').read_text())['imports'].values()
+    pinned = {line.split('==')[0].split('[')[0].strip().lower() for line in
+              (REPO / 'requirements.txt').read_text().splitlines() if '==' in line and not line.startswith('#')}
+    for key in keys:
+        match = re.fullmatch(r'python3-(.+)-pip', key)
+        if match:
+            assert match.group(1) in pinned, f'{key}: {match.group(1)} is not pinned in requirements.txt'
