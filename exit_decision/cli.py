@@ -208,10 +208,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir, args.scenario_override, args.override)
     try:
         report = replay_decisions(args.bag, config, args.policy_dir or default_policy_dir(), mode=args.mode,
-                                  algorithm=args.algorithm, policy_file=args.policy)
+                                  algorithm=args.algorithm, policy_file=args.policy, rebuild_graph=args.rebuild_graph)
     except BagError as error:
         raise UsageError(str(error)) from None
     print(report.summary())
+    return 0
+
+
+def cmd_fixture_record(args: argparse.Namespace) -> int:
+    """Record the replay fixture again (after a policy, the shield or the graph changed on purpose)."""
+    from datetime import datetime
+
+    from exit_decision.ros.replay import record_fixture
+
+    print(record_fixture(args.out, Path('runs') / 'stack_logs' / f'fixture_{datetime.now():%Y%m%d_%H%M%S}'))
     return 0
 
 
@@ -371,7 +381,19 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default=None)
     replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
     replay.add_argument('--policy-dir', type=Path, default=None)
+    replay.add_argument('--rebuild-graph', action='store_true',
+                        help='decide on graphs the graph builder makes again from the recorded states (a change '
+                             'to the graph module shows too; a bag recorded without the graph topic needs it)')
     replay.set_defaults(func=cmd_replay)
+
+    fixture = commands.add_parser('fixture', help='the replay fixture the tests replay (test/fixtures/replay_bag)')
+    fixture_commands = fixture.add_subparsers(dest='fixture_command', required=True)
+    record = fixture_commands.add_parser(
+        'record', help='run the stack (shipped config and policy, a short episode with a mode switch), record it and '
+                       'put it in place of the fixture once replay reproduces it')
+    record.add_argument('--out', type=Path, default=Path('test/fixtures/replay_bag'),
+                        help='fixture directory: bag/ and the override.yaml it was recorded with')
+    record.set_defaults(func=cmd_fixture_record)
 
     bag = commands.add_parser('bag', help='bag maintenance')
     bag_commands = bag.add_subparsers(dest='bag_command', required=True)
