@@ -122,58 +122,85 @@ def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
 
 
 def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
-    """Bridge, graph builder and decision node in separate processes, synchronous mode.
+    """The default stack (``stack_nodes.plan``: recorder and visualizer included), each node its
+    own process, synchronous mode, episodes until stopped.
 
-    An observer process counts the states and measures, for each decision step, the time
-    from receiving the states to receiving the commands that answer them."""
+    The other nodes and the bridge start first; once they are up the decision node starts, and
+    an observer node measures from that moment the first answer of its get_parameters service
+    and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
+    real-time factor and, for each decision step, the time from receiving the states to
+    receiving the commands that answer them."""
     import tempfile
 
     import numpy as np
     from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
+    from rcl_interfaces.srv import GetParameters
 
     from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
+    from exit_decision.ros.stack_nodes import BRIDGE, plan
 
-    common = {'config_dir': config_dir} if config_dir else {}
-    parameters = {'graph_builder': common, 'decision_node': {**common, **({'policy_dir': policy_dir} if policy_dir else {})},
-                  'sumo_bridge': {**common, 'episodes': 0, 'seed': seed}}
     received: dict[tuple[int, int], float] = {}
     latencies: list[float] = []
-    counted = {'states': 0, 'first': 0.0, 'last': 0.0, 'step_length': 0.0}
+    counted = {'states': 0, 'first': 0.0, 'last': 0.0, 'step_length': 0.0, 'command': 0.0}
     probe = ProbeNode('bench_observer')
     node = probe.node
 
     def on_states(msg) -> None:
         now = time.perf_counter()
-        counted['states'] += 1
-        counted['first'] = counted['first'] or now
-        counted['last'] = now
-        counted['step_length'] = msg.step_length
         received[(msg.episode, msg.step)] = now
+        if counted['command']:
+            counted['states'] += 1
+            counted['first'] = counted['first'] or now
+            counted['last'] = now
+            counted['step_length'] = msg.step_length
 
     def on_commands(msg) -> None:
+        now = time.perf_counter()
+        counted['command'] = counted['command'] or now
         sent = received.pop((msg.episode, msg.step), None)
-        if sent is not None:
-            latencies.append((time.perf_counter() - sent) * 1000)
+        if sent is not None and counted['first']:
+            latencies.append((now - sent) * 1000)
 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS)
-    with tempfile.TemporaryDirectory() as logs:
-        launcher = StackLauncher(parameters, Path(logs))
+    parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
+    answered = {'at': 0.0}
+    with tempfile.TemporaryDirectory() as tmp:
+        started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
+                        'policy_dir': policy_dir}, extra_listeners=1)
+        names = [name for name, _ in started]
+        launcher = StackLauncher(dict(started), Path(tmp) / 'logs')
         try:
-            for name in ('graph_builder', 'decision_node', 'sumo_bridge'):
-                launcher.start(name)
+            for name in names:
+                if name != 'decision_node':
+                    launcher.start(name)
+            others = sum(1 for name in names if name not in (BRIDGE, 'decision_node'))
+            deadline = time.monotonic() + 120
+            while node.count_subscribers(STATES_TOPIC) < others + 1 and time.monotonic() < deadline:
+                launcher.check_alive()
+                probe.executor.spin_once(timeout_sec=0.1)
+            decision_start = time.perf_counter()
+            launcher.start('decision_node')
+            pending = None
             deadline = time.monotonic() + 600
             while counted['states'] < steps + 1 and time.monotonic() < deadline:
                 launcher.check_alive()
-                probe.executor.spin_once(timeout_sec=0.1)
+                if not answered['at'] and parameters_client.service_is_ready() and pending is None:
+                    pending = parameters_client.call_async(GetParameters.Request(names=['mode']))
+                    pending.add_done_callback(lambda _: answered.update(at=time.perf_counter()))
+                probe.executor.spin_once(timeout_sec=0.01)
         finally:
             launcher.stop()
             probe.close()
     elapsed = counted['last'] - counted['first']
     measured = counted['states'] - 1
     latency = np.array(latencies)
+    answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     return '\n'.join([
-        f'ROS 2 stack, 3 processes, synchronous, {measured} steps ({len(latency)} decisions)',
+        (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, {measured} steps '
+         f'({len(latency)} decisions) from the first command'),
+        (f'  decision node start: parameters answered after {answer}, '
+         f'first command after {counted["command"] - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
         f'  states -> commands latency: median {np.median(latency):.2f} ms, p99 {np.percentile(latency, 99):.2f} ms'])

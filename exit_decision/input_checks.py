@@ -162,12 +162,14 @@ class StepGate:
     def __init__(self, max_step: int, max_gap: int = 10, resync: int = 3):
         self.max_step, self.max_gap, self.resync = max_step, max_gap, resync
         self.episode: int | None = None      # None until the first start
-        self.last: int | None = None         # last accepted step; None: any step may come first
+        self.last = -1                       # last accepted step of the episode (-1: none yet)
         self._chain: list[int] = []          # consecutive messages too far ahead, each following the one before
 
     def start(self, episode: int) -> None:
-        """A new episode began (the bridge's or the player's EVENT_STARTED)."""
-        self.episode, self.last, self._chain = episode, None, []
+        """A new episode began (the bridge's or the player's EVENT_STARTED): its steps count
+        from 0, so a late message of the episode before (a looped bag's last steps arriving
+        after the next pass's start) is refused, not taken as the new episode's first."""
+        self.episode, self.last, self._chain = episode, -1, []
 
     def check(self, episode: int, step: int) -> str | None:
         """Why a message of (episode, step) cannot come next, or None if it can. Changes no
@@ -178,7 +180,7 @@ class StepGate:
             return f'episode {episode} is not the current episode {self.episode}'
         if not 0 <= step <= self.max_step:
             return f'step {step} is outside 0..{self.max_step}'
-        if self.last is None or self.last < step <= self.last + self.max_gap:
+        if self.last < step <= self.last + self.max_gap:
             return None
         if step <= self.last:
             return f'step {step} does not follow step {self.last}'
@@ -191,7 +193,7 @@ class StepGate:
         """Remember a message rejected only for jumping too far ahead (it may start a resync).
         What later messages are accepted by ``check`` does not depend on it unless ``resync``
         such messages in a row follow each other."""
-        if episode != self.episode or self.last is None or not self.last + self.max_gap < step <= self.max_step:
+        if episode != self.episode or not self.last + self.max_gap < step <= self.max_step:
             return
         if self._chain and self._chain[-1] < step <= self._chain[-1] + self.max_gap:
             self._chain.append(step)
@@ -200,7 +202,7 @@ class StepGate:
 
     def accept(self, step: int) -> int:
         """Take a message of ``step`` (``check`` said it can come next); the number of steps
-        skipped since the last one taken (0 for the first of an episode)."""
-        skipped = 0 if self.last is None else step - self.last - 1
+        skipped since the last one taken (or since the episode's start)."""
+        skipped = step - self.last - 1
         self.last, self._chain = step, []
         return skipped

@@ -24,11 +24,10 @@ from exit_decision.config import ActionGridConfig, ConfigError
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape
+from exit_decision.policy_names import CONDITIONED_SUFFIX  # noqa: F401 (its users import it from here too)
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
-#: run names of mode-conditioned policies end so: policies/mdgqn_conditioned/policy.pt
-CONDITIONED_SUFFIX = '_conditioned'
 
 
 def git_revision() -> str:

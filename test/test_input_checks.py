@@ -132,7 +132,12 @@ def test_gate_follows_only_a_started_episode_and_a_stream_that_really_moved_on()
     gate = StepGate(1500, max_gap=10)
     assert gate.check(0, 0) is not None, 'nothing is taken before an episode starts'
     gate.start(7)
-    assert feed(gate, [(7, 600), (7, 601)]) == [(7, 600), (7, 601)], 'a node that joins mid-episode follows'
+    assert feed(gate, [(7, 600), (7, 601), (7, 602)]) == [(7, 602)], 'a node that joins mid-episode follows'
+    gate.start(8)
+    assert feed(gate, [(8, 35), (8, 0), (8, 5)]) == [(8, 0), (8, 5)], \
+        "a late step of the pass before is not the new pass's first"
+    gate.start(7)
+    feed(gate, [(7, 600), (7, 601), (7, 602)])
     # a node that stalled and lost 100 steps follows again after three steps that follow each other
     assert feed(gate, [(7, 701), (7, 702), (7, 703), (7, 704)]) == [(7, 703), (7, 704)]
     gate.start(0)                                  # a restarted bridge, a replayed bag

@@ -231,7 +231,11 @@ class ProbeNode:
         rclpy.try_shutdown(context=self.context)
 
 
+_STOP_SIGNALS: list[int] = []   # SIGINT/SIGTERM received by this process
+
+
 def _interrupt(signum: int, frame: object) -> None:
+    _STOP_SIGNALS.append(signum)
     raise KeyboardInterrupt
 
 
@@ -248,9 +252,10 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
     """Standard main: init, make the node, spin (or ``run``), clean shutdown on Ctrl-C/SIGTERM.
 
     A node that cannot start (bad config, missing or corrupt policy) says why and exits with 1."""
-    # Python's own SIGINT (KeyboardInterrupt) and ours for SIGTERM, instead of rclpy's, which
+    # KeyboardInterrupt on SIGINT and SIGTERM (ours, noting the signal), instead of rclpy's, which
     # would invalidate the context before the node's clean-up (the recorder closing its bag).
     rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     node = None
     try:
@@ -258,6 +263,11 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
         (run or spin)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # a KeyboardInterrupt raised while rclpy's C++ converts a message comes out as
+        # "RuntimeError: Unable to convert call argument": a stop all the same
+        if not _STOP_SIGNALS:
+            raise
     except (ConfigError, PolicyError, ParameterError) as error:
         print(f'[{name}] cannot start: {error}', file=sys.stderr)
         return 1

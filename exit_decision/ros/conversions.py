@@ -1,11 +1,12 @@
 """Conversion between the core's types and exit_decision_msgs, with validation.
 
-Arrays are filled from numpy in one assignment (element-wise filling of big sequences is
+Arrays are filled from numpy as bytes (``packed``: element-wise filling of big sequences is
 slow in rclpy). ``*_from_msg`` functions raise ``MessageError`` naming the field that is
 wrong, so a node can reject and count a malformed message instead of crashing.
 """
 from __future__ import annotations
 
+import array
 import math
 from collections.abc import Mapping, Sequence
 
@@ -76,14 +77,22 @@ def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
     return vehicles
 
 
+def packed(typecode: str, values: np.ndarray, dtype) -> array.array:
+    """``values`` as the ``array.array`` a sequence field keeps, copied as bytes: given a numpy
+    array, the generated setter converts it element by element (0.7 ms for a graph of 60)."""
+    out = array.array(typecode)
+    out.frombytes(np.ascontiguousarray(values, dtype=dtype).tobytes())
+    return out
+
+
 def graph_to_msg(graph: TrafficGraph, *, feature_set: str, episode: int, step: int,
                  stamp: Time) -> GraphMsg:
     msg = GraphMsg(episode=episode, step=step, num_nodes=graph.features.shape[0],
                    num_features=graph.features.shape[1], feature_set=feature_set,
                    vehicle_ids=list(graph.vehicle_ids))
-    msg.features = graph.features.astype(np.float32, copy=False).ravel()
-    msg.adjacency = graph.adjacency.astype(np.uint8, copy=False).ravel()
-    msg.cav_mask = graph.cav_mask.astype(np.uint8).ravel()
+    msg.features = packed('f', graph.features, np.float32)
+    msg.adjacency = packed('B', graph.adjacency, np.uint8)
+    msg.cav_mask = packed('B', graph.cav_mask, np.uint8)
     msg.header.stamp = stamp
     msg.header.frame_id = 'road'
     return msg

@@ -4,7 +4,10 @@ At start it loads, for each name of parameter ``algorithms``: ``<algorithm>_cond
 is one mode-conditioned checkpoint (``policy_dir/<algorithm>_conditioned/policy.pt``) that
 serves every mode of the config and any ``reward_weights``; a plain ``<algorithm>`` is one
 checkpoint per mode of parameter ``modes`` (``policy_dir/<algorithm>_<mode>/policy.pt``). A
-missing, corrupt or incompatible file stops the node at start, naming the path.
+missing, corrupt or incompatible file stops the node at start, naming the path. The policies
+load (torch's import included, about 2 s here) in a thread once the node is up: its parameter
+services answer meanwhile, and it subscribes and creates its command publisher only when they
+are loaded, so a synchronous bridge, which waits for a commands publisher, starts after that.
 
 ``mode`` and ``reward_weights`` (six numbers: result, efficiency, comfort and safety weights
 summing to 1, incentive and punishment summing to 1) are kept consistent: setting a mode sets
@@ -24,20 +27,21 @@ it is rejected whole, counted on /diagnostics and changes nothing.
 """
 from __future__ import annotations
 
+import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, TrafficGraph, VehicleStateArray
+from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, TrafficGraph as GraphMsg, VehicleStateArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from exit_decision.actions import ActionGrid
-from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Shield
 from exit_decision.errors import PolicyError
-from exit_decision.graph import FEATURE_SETS
-from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
+from exit_decision.graph import FEATURE_SETS, TrafficGraph
+from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config, describe,
@@ -45,6 +49,9 @@ from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPI
 from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
+
+if TYPE_CHECKING:
+    from exit_decision.policy import PolicyController
 
 ALGORITHMS = ('gqn', 'mdgqn', 'mdgqn_conditioned')
 CUSTOM_MODE = 'custom'   # the mode reported for reward_weights that are no configured mode's
@@ -74,24 +81,17 @@ class DecisionNode(Node):
         self.grid = ActionGrid(config.env.actions)
         geometry = RoadGeometry.of(config.scenario.road)
         self.shield = Shield.of(config, self.grid, geometry)
-        planner = LanePlanner.of(config, self.shield)
         self.limits = StateLimits.of(config, geometry)
-        self.controllers: dict[tuple[str, str | None], PolicyController] = {}   # mode None: conditioned
-        for algorithm in algorithms:
-            conditioned = algorithm.endswith(CONDITIONED_SUFFIX)
-            for mode in [None] if conditioned else modes:
-                if mode is not None:
-                    config.mode(mode)
-                policy = load_policy(policy_dir / (algorithm if conditioned else f'{algorithm}_{mode}') / 'policy.pt')
-                policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set,
-                                        config.env.decision_interval, self.grid)
-                if policy.conditioned != conditioned:
-                    raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
-                                      f'as algorithm {algorithm!r} needs')
-                weights = weight_input(config.mode(modes[0])) if conditioned else None
-                self.controllers[(algorithm, mode)] = PolicyController(policy, self.shield, weights, planner)
         if not modes:
             raise PolicyError('parameter modes: give at least one mode')
+        #: the policies to load, (algorithm, mode), mode None for a conditioned one: what the
+        #: parameters are checked against, also while they load
+        self.planned = [(algorithm, mode) for algorithm in algorithms
+                        for mode in ([None] if algorithm.endswith(CONDITIONED_SUFFIX) else modes)]
+        for _, mode in self.planned:
+            if mode is not None:
+                config.mode(mode)   # an unknown one stops the node now, not after loading
+        self.controllers: dict[tuple[str, str | None], PolicyController] = {}   # filled once loaded
         self.mode = p('mode', modes[0], describe(
             'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
         if not isinstance(self.mode, str) or self.mode not in config.modes and self.mode != CUSTOM_MODE:
@@ -126,13 +126,61 @@ class DecisionNode(Node):
         self.graph_gate = StepGate(config.scenario.max_steps, max_gap=gap)
         self.states_gate = StepGate(config.scenario.max_steps, max_gap=gap)
         self.diagnostics = Diagnostics(self, 'decision_node')
+        self.policy_dir, self.modes = policy_dir, modes
+        self.loaded: tuple | Exception | None = None   # what the loading thread hands over
+        self.loaded_signal = self.create_guard_condition(self.start_deciding)
+        threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
+
+    # --- start ------------------------------------------------------------------------------
+
+    def load_policies(self) -> None:
+        """(Thread) Load, check and warm up the planned policies; hand them (or the error) to
+        ``start_deciding`` in the executor's thread."""
+        try:
+            import torch
+
+            from exit_decision.agents.lane_planner import LanePlanner
+            from exit_decision.policy import load_policy
+            torch.set_num_threads(1)   # per thread: the warm-up as the decisions will run
+            config = self.config
+            n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
+            idle = TrafficGraph(np.zeros((n, f), np.float32), np.zeros((n, n), np.uint8), np.zeros(n, bool),
+                                ('',) * n)
+            policies = {}
+            for algorithm, mode in self.planned:
+                conditioned = mode is None
+                policy = load_policy(self.policy_dir / (algorithm if conditioned else f'{algorithm}_{mode}')
+                                     / 'policy.pt')
+                policy.check_compatible(n, config.graph.feature_set, config.env.decision_interval, self.grid)
+                if policy.conditioned != conditioned:
+                    raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
+                                      f'as algorithm {algorithm!r} needs')
+                weights = weight_input(config.mode(self.modes[0])) if conditioned else None
+                policy.q_values(idle, weights)   # the first forward pass is slow: not on the first decision
+                policies[(algorithm, mode)] = (policy, weights)
+            self.loaded = (policies, LanePlanner.of(config, self.shield))
+        except Exception as error:  # noqa: BLE001 (handed to the executor's thread, which stops the node with it)
+            self.loaded = error
+        self.loaded_signal.trigger()
+
+    def start_deciding(self) -> None:
+        """(Executor) With the policies loaded, subscribe and offer the commands; a loading
+        error stops the node (``run_node`` says why). The controllers are made here: each sets
+        torch to one thread, which holds for the thread that calls it, the one that decides."""
+        if isinstance(self.loaded, Exception):
+            raise self.loaded
+        from exit_decision.policy import PolicyController
+        policies, planner = self.loaded
+        self.controllers = {key: PolicyController(policy, self.shield, weights, planner)
+                            for key, (policy, weights) in policies.items()}
+        self.destroy_guard_condition(self.loaded_signal)
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
         # events first: when an episode's start and its first messages are both waiting, the
         # executor takes the subscription created first
         self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.diagnostics.subscribe(TrafficGraph, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+        self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
         self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS)
-        self.get_logger().info(f'loaded {len(self.controllers)} policies from {policy_dir}; '
+        self.get_logger().info(f'loaded {len(self.controllers)} policies from {self.policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
     # --- parameters -------------------------------------------------------------------------
@@ -163,7 +211,7 @@ class DecisionNode(Node):
         """Why the parameters with these changes cannot drive (None if they can)."""
         chosen = {'mode': self.mode, 'algorithm': self.algorithm, 'reward_weights': self.reward_weights, **changes}
         algorithm, mode = chosen['algorithm'], chosen['mode']
-        algorithms = sorted({a for a, _ in self.controllers})
+        algorithms = sorted({a for a, _ in self.planned})
         if not isinstance(mode, str) or not isinstance(algorithm, str):
             return f'mode and algorithm are strings, got mode {mode!r}, algorithm {algorithm!r}'
         reason = check_weight_input(chosen['reward_weights'])
@@ -176,11 +224,11 @@ class DecisionNode(Node):
         if mode != self.mode_of(chosen['reward_weights']) and (mode in self.config.modes or mode == CUSTOM_MODE):
             return (f'mode {mode!r} and reward_weights {list(chosen["reward_weights"])} disagree: set one of them '
                     f'(the other follows)')
-        if (algorithm, None) in self.controllers:
+        if (algorithm, None) in self.planned:
             if mode != CUSTOM_MODE and mode not in self.config.modes:
                 return f'unknown mode {mode!r}; known modes: {", ".join(self.config.modes)}'
             return None
-        loaded = sorted(m for a, m in self.controllers if a == algorithm)
+        loaded = sorted(m for a, m in self.planned if a == algorithm)
         if mode not in loaded:
             return (f'unknown mode {mode!r}: no policy loaded for it with algorithm {algorithm!r}; loaded modes: '
                     f'{", ".join(loaded)}' + ('' if mode != CUSTOM_MODE else
@@ -238,7 +286,7 @@ class DecisionNode(Node):
         self.states[(msg.episode, msg.step)] = vehicles
         self.try_decide((msg.episode, msg.step))
 
-    def on_graph(self, msg: TrafficGraph) -> None:
+    def on_graph(self, msg: GraphMsg) -> None:
         if msg.step % self.interval:
             return
         reason = self.graph_gate.check(msg.episode, msg.step)

@@ -29,6 +29,7 @@ from exit_decision.ros.bags import BAG_ALLOWED, READ_ERRORS, BagError, first_lin
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, ParameterError, declare, describe,
                                       follow, run_node)
 
+PASS_SETTLE = 0.5   # [s] between two passes of a looped bag (see let_the_pass_settle)
 
 class Player(Node):
     def __init__(self):
@@ -59,6 +60,8 @@ class Player(Node):
             publishers = self.wait_for_peers()
             passes = 0
             while rclpy.ok(context=self.context) and (passes == 0 or self.loop):
+                if passes:
+                    self.let_the_pass_settle(publishers)
                 self.play_once(publishers)
                 passes += 1
         except ParameterError:
@@ -83,6 +86,17 @@ class Player(Node):
         if EPISODE_TOPIC not in publishers:   # for the starts made here (transient local: no need to wait)
             publishers[EPISODE_TOPIC] = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
         return publishers
+
+    def let_the_pass_settle(self, publishers: dict) -> None:
+        """Before a pass starts its episodes again: the last pass's messages delivered and given
+        time to be handled. A node that had the next pass's EVENT_STARTED in hand together with
+        the last steps of the pass before would take the event first (its executor does not keep
+        the order across topics) and refuse those steps as not following the new start."""
+        for publisher in publishers.values():
+            publisher.wait_for_all_acked(Duration(seconds=1.0))
+        deadline = time.monotonic() + PASS_SETTLE
+        while rclpy.ok(context=self.context) and (left := deadline - time.monotonic()) > 0:
+            self.executor_.spin_once(timeout_sec=min(left, 0.1))   # parameter requests meanwhile
 
     @staticmethod
     def start_episode(events, raw: bytes) -> None:
