@@ -189,6 +189,13 @@ class StepGate:
             return None     # the stream really moved on: follow it
         return f'step {step} jumps more than {self.max_gap} steps past step {self.last}'
 
+    def refuse(self, episode: int, step: int) -> str | None:
+        """``check``, and a refused message remembered for a resync (``note_rejected``)."""
+        reason = self.check(episode, step)
+        if reason:
+            self.note_rejected(episode, step)
+        return reason
+
     def note_rejected(self, episode: int, step: int) -> None:
         """Remember a message rejected only for jumping too far ahead (it may start a resync).
         What later messages are accepted by ``check`` does not depend on it unless ``resync``

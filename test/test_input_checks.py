@@ -101,11 +101,9 @@ def feed(gate: StepGate, messages) -> list:
     """The (episode, step) messages a gate takes, in order."""
     taken = []
     for episode, step in messages:
-        if gate.check(episode, step) is None:
+        if gate.refuse(episode, step) is None:
             gate.accept(step)
             taken.append((episode, step))
-        else:
-            gate.note_rejected(episode, step)
     return taken
 
 

@@ -271,9 +271,8 @@ class DecisionNode(Node):
     def on_states(self, msg: VehicleStateArray) -> None:
         if msg.step % self.interval:
             return                                  # only decision steps are used
-        reason = self.states_gate.check(msg.episode, msg.step)
+        reason = self.states_gate.refuse(msg.episode, msg.step)
         if reason:
-            self.states_gate.note_rejected(msg.episode, msg.step)
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
         try:
@@ -289,9 +288,8 @@ class DecisionNode(Node):
     def on_graph(self, msg: GraphMsg) -> None:
         if msg.step % self.interval:
             return
-        reason = self.graph_gate.check(msg.episode, msg.step)
+        reason = self.graph_gate.refuse(msg.episode, msg.step)
         if reason:
-            self.graph_gate.note_rejected(msg.episode, msg.step)
             self.diagnostics.reject('out_of_sequence_graphs', 'graph', reason)
             return
         try:

@@ -41,9 +41,8 @@ class GraphBuilderNode(Node):
             self.builder.reset()
 
     def on_states(self, msg: VehicleStateArray) -> None:
-        reason = self.gate.check(msg.episode, msg.step)
+        reason = self.gate.refuse(msg.episode, msg.step)
         if reason:
-            self.gate.note_rejected(msg.episode, msg.step)
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
         try:
