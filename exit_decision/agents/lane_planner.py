@@ -40,11 +40,10 @@ class LanePlanner:
 
     def restrict(self, vehicle: VehicleState, mask: np.ndarray) -> np.ndarray:
         """The shield's mask without lane changes that leave the route (for a CAV on it)."""
-        if not self.on_route(vehicle):
+        if not vehicle.on_highway or not self.on_route(vehicle):
             return mask
-        stays = np.array([self.on_route(vehicle, vehicle.lane_index + int(change))
-                          for change in self.grid.lane_change_of])
-        kept = mask & stays
+        lanes = self.geometry.route_lanes(vehicle.position)
+        kept = mask & np.isin(vehicle.lane_index + self.grid.lane_change_of, lanes)
         return kept if kept.any() else mask
 
     def choose(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> int | None:
