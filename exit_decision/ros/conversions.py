@@ -17,7 +17,7 @@ from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray
 
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
-from exit_decision.input_checks import InputError
+from exit_decision.input_checks import InputError, StateLimits
 
 CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
 CLASS_NAMES = {code: name for name, code in CLASS_CODES.items()}
@@ -74,6 +74,14 @@ def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
     vehicles = [vehicle_from_msg(v) for v in msg.vehicles]
     if len({v.vehicle_id for v in vehicles}) != len(vehicles):
         raise MessageError('vehicles: a vehicle_id appears twice')
+    return vehicles
+
+
+def checked_states(msg: VehicleStateArray, limits: StateLimits) -> list[VehicleState]:
+    """The vehicles of a states message, every field checked against the scenario (InputError
+    naming the first that does not fit): what the graph builder and the decision node take."""
+    vehicles = states_from_msg(msg)
+    limits.check(vehicles, step=msg.step, step_length=msg.step_length)
     return vehicles
 
 

@@ -46,7 +46,7 @@ from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config, describe,
                                       run_node)
-from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, states_from_msg
+from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
 
@@ -276,8 +276,7 @@ class DecisionNode(Node):
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
         try:
-            vehicles = states_from_msg(msg)
-            self.limits.check(vehicles, step=msg.step, step_length=msg.step_length)
+            vehicles = checked_states(msg, self.limits)
         except InputError as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return

@@ -13,7 +13,7 @@ from rclpy.node import Node
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
                                       Diagnostics, declare_config, run_node)
-from exit_decision.ros.conversions import graph_to_msg, states_from_msg
+from exit_decision.ros.conversions import checked_states, graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
 
@@ -46,9 +46,7 @@ class GraphBuilderNode(Node):
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
         try:
-            vehicles = states_from_msg(msg)
-            self.limits.check(vehicles, step=msg.step, step_length=msg.step_length)
-            graph = self.builder.build(vehicles)
+            graph = self.builder.build(checked_states(msg, self.limits))
         except (InputError, GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
