@@ -126,8 +126,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     own process, synchronous mode, episodes until stopped.
 
     The other nodes and the bridge start first; once they are up the decision node starts, and
-    an observer node measures from that moment the first answer of its get_parameters service
-    and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
+    an observer node measures from that moment the first answer of its get_parameters service,
+    the bridge's first step (it waits for the decision node's commands publisher, which comes
+    once the policies are loaded) and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
     real-time factor and, for each decision step, the time from receiving the states to
     receiving the commands that answer them."""
     import tempfile
@@ -135,35 +136,33 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     import numpy as np
     from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
     from rcl_interfaces.srv import GetParameters
+    from rclpy.serialization import deserialize_message
 
     from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
     from exit_decision.ros.stack_nodes import BRIDGE, plan
+    from exit_decision.step_gaps import episode_and_step
 
-    received: dict[tuple[int, int], float] = {}
-    latencies: list[float] = []
-    counted = {'states': 0, 'first': 0.0, 'last': 0.0, 'step_length': 0.0, 'command': 0.0}
+    # (episode, step) -> when the observer's middleware received it (its receive stamp, so the
+    # observer's own executor, which may lag on 2 busy cores, does not count)
+    states_at: dict[tuple[int, int], float] = {}
+    commands_at: dict[tuple[int, int], float] = {}
+    counted = {'states': 0, 'step_length': 0.0}   # states received since the first command
     probe = ProbeNode('bench_observer')
     node = probe.node
 
-    def on_states(msg) -> None:
-        now = time.perf_counter()
-        received[(msg.episode, msg.step)] = now
-        if counted['command']:
-            counted['states'] += 1
-            counted['first'] = counted['first'] or now
-            counted['last'] = now
-            counted['step_length'] = msg.step_length
+    # the observer reads only (episode, step) of the messages (raw): decoding every one would
+    # load the 2 cores it measures on
+    def on_states(raw: bytes, info) -> None:
+        states_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
+        counted['states'] += bool(commands_at)
+        counted['step_length'] = counted['step_length'] or deserialize_message(raw, VehicleStateArray).step_length
 
-    def on_commands(msg) -> None:
-        now = time.perf_counter()
-        counted['command'] = counted['command'] or now
-        sent = received.pop((msg.episode, msg.step), None)
-        if sent is not None and counted['first']:
-            latencies.append((now - sent) * 1000)
+    def on_commands(raw: bytes, info) -> None:
+        commands_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
 
-    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
-    node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS)
+    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
+    node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)
     parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
     answered = {'at': 0.0}
     with tempfile.TemporaryDirectory() as tmp:
@@ -180,7 +179,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
             while node.count_subscribers(STATES_TOPIC) < others + 1 and time.monotonic() < deadline:
                 launcher.check_alive()
                 probe.executor.spin_once(timeout_sec=0.1)
-            decision_start = time.perf_counter()
+            decision_start = time.time()
             launcher.start('decision_node')
             pending = None
             deadline = time.monotonic() + 600
@@ -188,19 +187,22 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                 launcher.check_alive()
                 if not answered['at'] and parameters_client.service_is_ready() and pending is None:
                     pending = parameters_client.call_async(GetParameters.Request(names=['mode']))
-                    pending.add_done_callback(lambda _: answered.update(at=time.perf_counter()))
+                    pending.add_done_callback(lambda _: answered.update(at=time.time()))
                 probe.executor.spin_once(timeout_sec=0.01)
         finally:
             launcher.stop()
             probe.close()
-    elapsed = counted['last'] - counted['first']
-    measured = counted['states'] - 1
-    latency = np.array(latencies)
+    first_command = min(commands_at.values())
+    window = sorted(at for at in states_at.values() if at >= first_command)[:steps + 1]
+    elapsed, measured = window[-1] - window[0], len(window) - 1
+    latency = np.array([(at - states_at[key]) * 1000 for key, at in commands_at.items()
+                        if key in states_at and window[0] <= states_at[key] <= window[-1]])
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     return '\n'.join([
         (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, {measured} steps '
          f'({len(latency)} decisions) from the first command'),
         (f'  decision node start: parameters answered after {answer}, '
-         f'first command after {counted["command"] - decision_start:.2f} s'),
+         f'the bridge\'s first step after {min(states_at.values()) - decision_start:.2f} s, '
+         f'first command after {first_command - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
         f'  states -> commands latency: median {np.median(latency):.2f} ms, p99 {np.percentile(latency, 99):.2f} ms'])

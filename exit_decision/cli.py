@@ -67,10 +67,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    """Train one decision mode with GQN or MDGQN; writes policy.pt, logs and config."""
+    """Train a learned method (one mode or the conditioned network); writes policy.pt, logs and config."""
     from exit_decision.learning.trainer import CONDITIONED, Trainer
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    config.training.method(args.algorithm)
     if args.mode != CONDITIONED:
         config.mode(args.mode)
     episodes = args.episodes or config.training.episodes
@@ -116,7 +117,8 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     """Train and evaluate each step of config/ablation.yaml; print the table."""
     from exit_decision.experiments.ablation import markdown, run_ablation
 
-    table = run_ablation(args.out, args.algorithm, args.mode, args.episodes, args.test_episodes, args.seed,
+    mode = args.mode or load_project(args.config_dir).env.mode
+    table = run_ablation(args.out, args.algorithm, mode, args.episodes, args.test_episodes, args.seed,
                          args.test_seed, args.only, args.config_dir)
     print(markdown(table))
     return 0
@@ -156,8 +158,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Write the results page from evaluation, ablation and figures."""
     from exit_decision.evaluation.report import results_page
 
+    config = load_project(args.config_dir)
     print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
-                       max_steps=load_project(args.config_dir).scenario.max_steps))
+                       max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings))
     return 0
 
 
@@ -177,18 +180,20 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.metrics import markdown_table, summarize
     from exit_decision.ros.launcher import free_bag_path, run_stack
 
-    load_project(args.config_dir)   # fail early, with the key, on a bad config
+    matrix = load_project(args.config_dir).mode_matrix   # fail early, with the key, on a bad config
+    mode = args.mode or matrix.aggressive.punished
+    switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
-    run = run_stack(mode=args.mode, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
+    run = run_stack(mode=mode, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
                     bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
-                    switch_to=args.switch_to or None, switch_at_step=args.switch_at,
+                    switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
                     visualizer=not args.no_visualizer)
     if run.mode_switch:
         print(run.mode_switch)
     if run.episodes:
-        label = f'{args.algorithm} {args.mode}' + (f' -> {args.switch_to}' if args.switch_to else '')
+        label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switch_to else '')
         print(markdown_table([(label, summarize(run.episodes))]))
     else:
         print('no episode finished (see the logs)')
@@ -250,22 +255,42 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """Every method on every scenario variant, the same seeds, as Ray tasks; CSV per cell."""
-    from exit_decision.experiments.compare import default_methods, load_variants, plan_cells, run_sweep, write_summary
+    """Train the learned methods (``--train``), then every method on every scenario variant, the
+    same seeds, as Ray tasks; CSV per cell; the comparison page and its figures."""
+    from exit_decision.experiments.compare import (REFERENCE_DRIVERS, SweepResult, default_methods,
+                                                   load_comparison_training, load_variants, plan_cells, run_sweep,
+                                                   run_trainings)
+    from exit_decision.experiments.comparison_report import write_comparison
 
-    variants = args.variants or (args.config_dir or default_config_dir()) / 'variants.yaml'
-    configs = load_variants(variants, args.config_dir, args.override, args.variant)
+    config_dir = args.config_dir or default_config_dir()
+    configs = load_variants(args.variants or config_dir / 'variants.yaml', args.config_dir, args.override,
+                            args.variant)
     base = next(iter(configs.values()))
     modes = args.mode or list(base.training.conditioning.validation_modes)
     for mode in modes:
         base.mode(mode)
-    cells = plan_cells(args.method or default_methods(), configs, modes)
+    methods = list(base.training.methods) if args.train == ['all'] else args.train
+    runs, trained, training_mode, budget, trainings = [], {}, base.env.mode, None, SweepResult()
+    if methods:
+        runs, budgeted, budget = load_comparison_training(args.training or config_dir / 'comparison.yaml',
+                                                          load_project(args.config_dir, overrides=args.override), methods)
+        training_mode = runs[0].mode
+        trainings = run_trainings(runs, budgeted, args.out, args.address, args.workers, args.retries)
+        trained = {run.name: run.directory(args.out) / 'policy.pt' for run in runs if run.done(args.out, budgeted)}
+    drivers = args.method or (list(REFERENCE_DRIVERS) if methods else default_methods())
+    cells = plan_cells(drivers, configs, modes, trained)
     seeds = list(range(args.seed, args.seed + args.episodes))
     result = run_sweep(cells, configs, seeds, args.out, args.address, args.workers, args.retries)
-    summary = write_summary(args.out, cells, configs, modes, 'exit-decision ' + ' '.join(sys.argv[1:]))
+    learned = {method: [run.name for run in runs if run.method == method and run.name in trained] for method in methods}
+    report = write_comparison(args.out, args.report or args.out / 'comparison.md', list(configs), learned,
+                              sorted({cell.method for cell in cells if cell.method not in trained}),
+                              modes, training_mode, base.scenario.max_steps,
+                              'exit-decision ' + ' '.join(sys.argv[1:]), budget)
+    if methods:
+        print('training: ' + trainings.summary())
     print(result.summary())
-    print(f'per-cell CSVs in {args.out}/<variant>/; tables: {summary}')
-    return 1 if result.failed else 0
+    print(f'per-cell CSVs in {args.out}/<variant>/; the comparison: {report}')
+    return 1 if result.failed or trainings.failed else 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -315,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument('--episodes', type=int, default=1)
     run.add_argument('--seed', type=int, default=0, help='seed of the first episode (then +1 each)')
     run.add_argument('--driver', choices=['sumo', 'hold'], default='sumo',
-                     help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to Exit_1 (the '
+                     help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to the target exit (the '
                           'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
                           'every CAV holding lane and speed (shows that collisions are real)')
     run.add_argument('--mode', default=None, help='decision mode for the reward (default: env.yaml)')
@@ -324,9 +349,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help='write the table with the command and the full configuration here')
     run.set_defaults(func=cmd_run)
 
-    train = commands.add_parser('train', help='train a decision mode with GQN or MDGQN')
+    train = commands.add_parser('train', help='train a learned method (GQN, MDGQN, the baselines) for a mode or all')
     _common(train)
-    train.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
+    train.add_argument('--algorithm', default='mdgqn',
+                       help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
+                            'sgrl, mgrl, ngrl')
     train.add_argument('--mode', default='conditioned',
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')
@@ -361,8 +388,11 @@ def build_parser() -> argparse.ArgumentParser:
     stack = commands.add_parser('stack', help='run the ROS 2 stack (bridge, graph builder, decision node, '
                                               'recorder) for an episode, with a mode switch')
     stack.add_argument('--config-dir', type=Path, default=None)
-    stack.add_argument('--mode', default='AGGP', help='decision mode at start')
-    stack.add_argument('--switch-to', default='CONP', help='mode to switch to mid-run ("" = no switch)')
+    stack.add_argument('--mode', default=None,
+                       help='decision mode at start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
+    stack.add_argument('--switch-to', default=None,
+                       help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
+                            'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=int, default=300, help='step of the first episode to switch at')
     stack.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default='mdgqn_conditioned',
                        help='mdgqn_conditioned: one network for every mode (the mode switches its weights)')
@@ -418,8 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     ablation = commands.add_parser('ablation', help='train + evaluate each step of config/ablation.yaml')
     ablation.add_argument('--config-dir', type=Path, default=None)
-    ablation.add_argument('--algorithm', choices=['gqn', 'mdgqn'], default='mdgqn')
-    ablation.add_argument('--mode', default='CONP')
+    ablation.add_argument('--algorithm', default='mdgqn', help='a method of config/training.yaml')
+    ablation.add_argument('--mode', default=None, help='decision mode (default: env.yaml\'s mode)')
     ablation.add_argument('--episodes', type=int, default=40, help='training episodes per step')
     ablation.add_argument('--test-episodes', type=int, default=10)
     ablation.add_argument('--seed', type=int, default=0)
@@ -474,8 +504,14 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument('--variants', type=Path, default=None, help='default: <config dir>/variants.yaml')
     compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
     compare.add_argument('--method', action='append', default=[],
-                         help='rule_based, sumo or a policy.pt (repeatable; default: both drivers and the shipped '
-                              'policies/mdgqn_conditioned/policy.pt)')
+                         help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
+                              'policies/mdgqn_conditioned/policy.pt unless --train is given)')
+    compare.add_argument('--train', action='append', default=[],
+                         help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
+                              'scenario, with the seeds and budget of --training; finished runs are reused')
+    compare.add_argument('--training', type=Path, default=None, help='default: <config dir>/comparison.yaml')
+    compare.add_argument('--report', type=Path, default=None,
+                         help='the comparison page (figures beside it; default <out>/comparison.md)')
     compare.add_argument('--mode', action='append', default=[],
                          help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
     compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')

@@ -31,10 +31,30 @@ class Strict(BaseModel):
 
 # --- scenario ---------------------------------------------------------------------------
 
+#: An edge id of the generated network: SUMO's lane ids append ``_<index>``, ':' starts its internal ids.
+EdgeName = Annotated[str, Field(pattern=r'^[A-Za-z][A-Za-z0-9_.-]*$')]
+
+
+class RoadNames(Strict):
+    """The edge ids of the road: code asks for an edge by its role, never by its name."""
+    sections: tuple[EdgeName, EdgeName, EdgeName]   # highway sections, upstream to downstream
+    first_exit: EdgeName     # ramp off lane 0 at the end of the first section (HV3 leaves by it)
+    target_exit: EdgeName    # ramp off lane 0 at the end of the second section: every CAV's task
+
+    @model_validator(mode='after')
+    def _distinct(self) -> RoadNames:
+        names = [*self.sections, self.first_exit, self.target_exit]
+        repeated = sorted({name for name in names if names.count(name) > 1})
+        if repeated:
+            raise ValueError(f'each edge needs its own name; repeated: {", ".join(repeated)}')
+        return self
+
+
 class RoadConfig(Strict):
+    names: RoadNames
     lane_count: Annotated[int, Field(ge=1, le=6)]
     highway_lengths: Annotated[tuple[PositiveFloat, PositiveFloat, PositiveFloat],
-                               Field(description='Highway_0, Highway_1, Highway_2 [m]')]
+                               Field(description='[m] of each of names.sections')]
     ramp_length: PositiveFloat
     highway_speed_limit: PositiveFloat
     ramp_speed_limit: PositiveFloat
@@ -123,8 +143,35 @@ class ModeConfig(Strict):
     punishment: Probability
 
 
+class ModeRow(Strict):
+    incentive: str
+    punished: str
+
+
+class ModeMatrix(Strict):
+    """The paper's 2 x 2 matrix of modes (Table 3): a style per row, a result weighting per column."""
+    aggressive: ModeRow
+    conservative: ModeRow
+
+    @property
+    def modes(self) -> list[str]:
+        """Row by row: aggressive incentive, aggressive punished, conservative incentive, conservative punished."""
+        return [self.aggressive.incentive, self.aggressive.punished,
+                self.conservative.incentive, self.conservative.punished]
+
+    @property
+    def speed_orderings(self) -> list[tuple[str, str]]:
+        """(faster, slower) pairs the modes' names promise: aggressive over conservative in each
+        column, incentive over punished in each row."""
+        rows = (self.aggressive, self.conservative)
+        return ([(self.aggressive.incentive, self.conservative.incentive),
+                 (self.aggressive.punished, self.conservative.punished)]
+                + [(row.incentive, row.punished) for row in rows])
+
+
 class ModesConfig(Strict):
     modes: dict[str, ModeConfig]
+    matrix: ModeMatrix
 
 
 class SpeedBounds(Strict):
@@ -221,14 +268,33 @@ class EnvConfig(Strict):
 
 # --- training -------------------------------------------------------------------------------
 
+EncoderName = Literal['graph', 'graph_paper', 'grid', 'nearest']   # exit_decision/encoders.py
+
+
 class NetworkConfig(Strict):
-    encoder: PositiveInt
-    gcn: PositiveInt
-    head: PositiveInt
+    encoder: list[PositiveInt]       # per-row layers
+    gcn: Count                       # 0: no graph convolution
+    head: list[PositiveInt]
+    dueling: bool = False
+    adjacency_input: bool = False    # (no GCN) each row's adjacency row is part of its input
 
 
-class AlgorithmConfig(Strict):
-    multi_step: PositiveInt
+class PrioritizedReplayConfig(Strict):
+    alpha: Probability
+    beta: Probability
+
+
+class MethodConfig(Strict):
+    """A learned method: a state encoder, a network and a loss (issue 11)."""
+    paper: str
+    description: str
+    encoder: EncoderName
+    network: NetworkConfig
+    double: bool                     # the bootstrap action chosen by the online network
+    multi_step: PositiveInt          # m of the m-step target
+    prioritized: PrioritizedReplayConfig | None = None
+    single_agent: bool = False       # SGRL: one CAV learns, the others drive as humans in training
+    training: dict = {}              # the method's own settings over this file's (e.g. paper 003's)
 
 
 class ExplorationConfig(Strict):
@@ -279,8 +345,19 @@ class TrainingConfig(Strict):
     reward_scale: PositiveFloat
     credit: Literal['own', 'global']
     conditioning: ConditioningConfig
-    network: NetworkConfig
-    algorithms: dict[Literal['gqn', 'mdgqn'], AlgorithmConfig]
+    methods: dict[str, MethodConfig]
+
+    def method(self, name: str) -> MethodConfig:
+        if name not in self.methods:
+            raise ConfigError(f'unknown method {name!r}; known: {", ".join(self.methods)}')
+        return self.methods[name]
+
+    def of_method(self, name: str) -> TrainingConfig:
+        """These settings with the method's own over them (validated when the file is loaded)."""
+        override = self.method(name).training
+        if not override:
+            return self
+        return parse(TrainingConfig, deep_merge(self.model_dump(), override), f'methods.{name}.training')
     exploration: ExplorationConfig
     demonstrations: DemonstrationConfig
     validation: ValidationConfig
@@ -354,6 +431,7 @@ class ProjectConfig(BaseModel):
     graph: GraphConfig
     env: EnvConfig
     modes: dict[str, ModeConfig]
+    mode_matrix: ModeMatrix
     rewards: dict[str, MatrixRewardConfig | BaselineRewardConfig]
     training: TrainingConfig
 
@@ -402,10 +480,21 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
             sources[name] = Path(str(source)) if isinstance(source, (str, Path)) else sources[name]
     parsed = {name: parse(schema, raw[name], sources[name]) for name, schema in CONFIG_FILES.items()}
     config = ProjectConfig(scenario=parsed['scenario'], graph=parsed['graph'], env=parsed['env'],
-                           modes=parsed['modes'].modes, rewards=parsed['reward'].variants,
+                           modes=parsed['modes'].modes, mode_matrix=parsed['modes'].matrix,
+                           rewards=parsed['reward'].variants,
                            training=parsed['training'])
     config.mode(config.env.mode)
     config.reward(config.env.reward_variant)
+    for name in config.mode_matrix.modes:
+        if name not in config.modes:
+            raise ConfigError(f'{sources["modes"]}: matrix: unknown mode {name!r}; known modes: {", ".join(config.modes)}')
+    for method, settings in config.training.methods.items():
+        if 'methods' in settings.training:
+            raise ConfigError(f'{sources["training"]}: methods.{method}.training: may not hold methods')
+        try:
+            config.training.of_method(method)
+        except ConfigError as error:
+            raise ConfigError(f'{sources["training"]}: {error}') from None
     for key in ('modes', 'validation_modes'):
         for name in getattr(config.training.conditioning, key):
             if name not in config.modes:

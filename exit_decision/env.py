@@ -36,13 +36,14 @@ class ExitDecisionEnv(gym.Env):
     metadata = {'render_modes': []}
 
     def __init__(self, config: ProjectConfig, mode: str | None = None, reward_variant: str | None = None,
-                 cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo', keep_step_inputs: bool = False):
+                 cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo', keep_step_inputs: bool = False,
+                 single_agent: bool = False):
         self.config = config
         # the episode's reward inputs, kept to score it under other reward variants afterwards
         self.step_inputs: list[StepRewardInputs] | None = [] if keep_step_inputs else None
         self.mode = mode or config.env.mode
         scenario = config.scenario
-        self.sim = HighwaySimulation(scenario, cav_driver=cav_driver, backend=backend)
+        self.sim = HighwaySimulation(scenario, cav_driver=cav_driver, backend=backend, single_agent=single_agent)
         self.graph_builder = GraphBuilder(config.graph, self.sim.geometry.road_length,
                                           scenario.road.highway_speed_limit, scenario.road.lane_count)
         self.actions = ActionGrid(config.env.actions)

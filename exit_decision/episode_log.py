@@ -5,7 +5,7 @@ vectors' sum scored under ``reward_weights``, the env's mode, by linearity); ``E
 vehicle-steps), p_collision (collisions / CAVs, the paper's definition) and p_collision_CAV
 (collisions involving a CAV / CAVs), N_braking (emergency-braking events: a contiguous run
 of steps at or below the threshold counts once) and braking vehicle-steps, p_CAV and p_HV2
-(left by Exit_1 / entered), the episode reward and the steps. Kept below the environment,
+(left by the target exit / entered), the episode reward and the steps. Kept below the environment,
 which records into it; evaluation summarises the metrics.
 """
 from __future__ import annotations
@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from exit_decision.reward import scalar
-from exit_decision.scenario.sumo_inputs import TASK_EXIT
 from exit_decision.traffic import StepResult
 
 METRICS = ('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking', 'braking_steps',
@@ -35,7 +34,7 @@ class EpisodeLog:
     braking_events: int = 0
     braking_steps: int = 0
     entered: dict[str, set[str]] = field(default_factory=dict)
-    exits: dict[tuple[str, str], int] = field(default_factory=dict)   # (class, exit edge) -> count
+    target_exits: dict[str, int] = field(default_factory=dict)   # class -> vehicles that left by the target exit
     reward_weights: np.ndarray | None = None    # (4, 2) multipliers of the mode the return is scored under
     reward_vector: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))  # summed over steps
 
@@ -53,8 +52,8 @@ class EpisodeLog:
         self.collisions += len(step.collisions)
         self.cav_collisions += sum(1 for c in step.collisions if c.involves_cav)
         for arrival in step.arrivals:
-            key = (arrival.vehicle_class, arrival.exit_edge)
-            self.exits[key] = self.exits.get(key, 0) + 1
+            if arrival.reached_target:
+                self.target_exits[arrival.vehicle_class] = self.target_exits.get(arrival.vehicle_class, 0) + 1
         if reward_vector is not None:
             self.reward_vector += reward_vector
 
@@ -71,8 +70,8 @@ class EpisodeLog:
             'p_collision_CAV': self.cav_collisions / n_cav if n_cav else nan,
             'N_braking': float(self.braking_events),
             'braking_steps': float(self.braking_steps),
-            'p_CAV': self.exits.get(('CAV', TASK_EXIT), 0) / n_cav if n_cav else nan,
-            'p_HV2': self.exits.get(('HV2', TASK_EXIT), 0) / n_hv2 if n_hv2 else nan,
+            'p_CAV': self.target_exits.get('CAV', 0) / n_cav if n_cav else nan,
+            'p_HV2': self.target_exits.get('HV2', 0) / n_hv2 if n_hv2 else nan,
             'reward': float(scalar(self.reward_vector, self.reward_weights)) if self.reward_weights is not None else nan,
             'steps': float(self.steps),
         }

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, CavCommand, VehicleState,
                                    parse_vehicle_id)
@@ -54,20 +55,20 @@ class StateLimits:
     step_length: float                          # [s]
     max_steps: int
     max_vehicles: int                           # vehicles one message may carry
+    highway_edges: frozenset[str]               # the highway sections' edge ids (any other edge: a ramp)
 
     @classmethod
     def of(cls, config, geometry) -> StateLimits:
         """From the project config and its ``RoadGeometry`` (every lane's edge, index and
         offset along the road; the road's length)."""
         scenario, road = config.scenario, config.scenario.road
-        lanes = [(lane.edge_id, lane.lane_index, lane.offset) for lane in geometry.lanes.values()]
         road_length = geometry.road_length
-        ramps = [offset for edge, _, offset in lanes if not edge.startswith('Highway')]
+        ramps = [lane.offset for lane in geometry.lanes.values() if not lane.on_highway]
         types = scenario.vehicle_types
         braking = max([t.emergency_decel for t in types.values()] + [-config.env.actions.acceleration_min])
         speeding_up = max([t.accel for t in types.values()] + [config.env.actions.acceleration_max])
         return cls(
-            lanes=frozenset((edge, index) for edge, index, _ in lanes),
+            lanes=frozenset((lane.edge_id, lane.lane_index) for lane in geometry.lanes.values()),
             class_counts={name: c.count for name, c in scenario.vehicle_classes.items()},
             lengths={name: t.length for name, t in types.items()},
             max_speeds={name: t.max_speed for name, t in types.items()},
@@ -75,7 +76,8 @@ class StateLimits:
             speed_limit_max=max(road.highway_speed_limit, road.ramp_speed_limit),
             acceleration_range=(-ACCELERATION_MARGIN * braking, ACCELERATION_MARGIN * speeding_up),
             step_length=scenario.step_length, max_steps=scenario.max_steps,
-            max_vehicles=min(scenario.total_vehicles, config.graph.max_vehicles))
+            max_vehicles=min(scenario.total_vehicles, config.graph.max_vehicles),
+            highway_edges=frozenset(geometry.sections))
 
     def check(self, vehicles: Sequence[VehicleState], step: int | None = None,
               step_length: float | None = None) -> None:
@@ -94,6 +96,19 @@ class StateLimits:
                 raise InputError(f'vehicle {vehicle.vehicle_id!r} appears twice')
             seen.add(vehicle.vehicle_id)
 
+    @cached_property
+    def _ranges(self) -> dict[str, tuple[tuple[str, float, float], ...]]:
+        """Per class, (field, low, high) of the numeric fields: made once, used for every vehicle
+        of every step. The bounds are finite, so NaN and infinities fall outside them."""
+        return {name: (('position', 0.0, self.position_max), ('lateral_offset', -LANE_WIDTH, LANE_WIDTH),
+                       ('speed', 0.0, max_speed + SPEED_TOLERANCE), ('acceleration', *self.acceleration_range),
+                       ('lane_speed_limit', 0.0, self.speed_limit_max + 1e-6))
+                for name, max_speed in self.max_speeds.items()}
+
+    @cached_property
+    def _edges(self) -> frozenset[str]:
+        return frozenset(edge for edge, _ in self.lanes)
+
     def check_vehicle(self, v: VehicleState) -> None:
         def bad(field: str, allowed: str) -> InputError:
             return InputError(f'vehicle {v.vehicle_id!r}: {field} {getattr(v, field)!r} is not {allowed}')
@@ -107,16 +122,10 @@ class StateLimits:
         if (v.edge_id, v.lane_index) not in self.lanes:
             raise InputError(f'vehicle {v.vehicle_id!r}: lane_index {v.lane_index} on edge_id {v.edge_id!r} '
                              f'is no lane of the road')
-        if v.route_target not in {edge for edge, _ in self.lanes}:
+        if v.route_target not in self._edges:
             raise bad('route_target', 'an edge of the road')
-        ranges = {'position': (0.0, self.position_max),
-                  'lateral_offset': (-LANE_WIDTH, LANE_WIDTH),
-                  'speed': (0.0, self.max_speeds[v.vehicle_class] + SPEED_TOLERANCE),
-                  'acceleration': self.acceleration_range,
-                  'lane_speed_limit': (0.0, self.speed_limit_max + 1e-6)}
-        for field, (low, high) in ranges.items():
-            value = getattr(v, field)
-            if not (math.isfinite(value) and low <= value <= high):
+        for field, low, high in self._ranges[v.vehicle_class]:
+            if not low <= getattr(v, field) <= high:
                 raise bad(field, f'finite within [{low:g}, {high:g}]')
         if not math.isclose(v.length, self.lengths[v.vehicle_class], rel_tol=1e-6):
             raise bad('length', f'the {v.vehicle_class} length {self.lengths[v.vehicle_class]:g}')

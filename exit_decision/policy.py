@@ -1,9 +1,11 @@
 """Policy checkpoints and greedy inference, used by evaluation and the decision node.
 
 A checkpoint is self-describing: the network's state_dict plus plain-data metadata (network
-shape, action grid, decision interval, feature set, N, mode, algorithm, seed, git revision,
-training summary), so it loads with ``torch.load(weights_only=True)`` and rebuilds its own
-network. ``GraphPolicy.q_values`` runs all rows of a graph in one forward pass;
+shape, state encoder, action grid, decision interval, feature set, N, mode, algorithm (the
+method's name), seed, git revision, training summary), so it loads with
+``torch.load(weights_only=True)`` and rebuilds its own network and encoder (a checkpoint
+without one reads the graph as built). ``GraphPolicy.q_values`` encodes the graph and the
+vehicle states for its method and runs all rows in one forward pass;
 ``PolicyController`` chooses, per CAV, the best action the shield allows (the lane planner,
 when configured, driving the CAVs that are off their route).
 """
@@ -21,6 +23,7 @@ from exit_decision.actions import ActionGrid
 from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Decision, Shield
 from exit_decision.config import ActionGridConfig, ConfigError
+from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape
@@ -66,6 +69,8 @@ class GraphPolicy:
         self.network = network.eval()
         self.metadata = metadata
         self.grid = ActionGrid(ActionGridConfig(**metadata['action_grid']))
+        self.encoder = StateEncoder(**metadata.get('encoder', {'name': 'graph', 'graph_features': network.shape.num_features,
+                                                              'lane_count': 3, 'speed_limit': 1.0}))
 
     @property
     def label(self) -> str:
@@ -87,8 +92,10 @@ class GraphPolicy:
         """One network for every mode: Q(s, a, w) takes the mode's weights."""
         return self.network.conditioned
 
-    def q_values(self, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
-        return q_values(self.network, graph, weights if self.conditioned else None)
+    def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
+                 weights: np.ndarray | None = None) -> np.ndarray:
+        """(N, A) Q values of the graph's rows, as this policy's method sees the traffic."""
+        return q_values(self.network, self.encoder.encode(graph, snapshot), weights if self.conditioned else None)
 
 
 def load_policy(path: Path | str) -> GraphPolicy:
@@ -105,7 +112,7 @@ def load_policy(path: Path | str) -> GraphPolicy:
         network = GraphQNetwork(NetworkShape(**data['network']))
         network.load_state_dict(data['state_dict'])
         return GraphPolicy(path, network, data['metadata'])
-    except (KeyError, TypeError, RuntimeError, ConfigError) as error:
+    except (KeyError, TypeError, ValueError, RuntimeError, ConfigError) as error:
         raise PolicyError(f'{path}: checkpoint content does not fit ({error})') from None
 
 
@@ -145,5 +152,6 @@ class PolicyController:
         self.weights = weights
 
     def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
-        return greedy_decision(self.shield, graph, TrafficSnapshot(vehicles), self.policy.q_values(graph, self.weights),
+        snapshot = TrafficSnapshot(vehicles)
+        return greedy_decision(self.shield, graph, snapshot, self.policy.q_values(graph, snapshot, self.weights),
                                planner=self.planner)

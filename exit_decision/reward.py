@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from exit_decision.config import BaselineRewardConfig, MatrixRewardConfig, ModeConfig
-from exit_decision.scenario.sumo_inputs import TASK_EXIT
 from exit_decision.traffic import StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
@@ -194,9 +193,9 @@ class MatrixReward:
             return own.setdefault(vehicle_id, np.zeros((4, 2)))
 
         for arrival in step.arrivals:
-            if arrival.exit_edge == TASK_EXIT and arrival.vehicle_class == 'CAV':
+            if arrival.reached_target and arrival.vehicle_class == 'CAV':
                 of(arrival.vehicle_id)[RESULT, INCENTIVE] += 300.0
-            elif arrival.exit_edge == TASK_EXIT and arrival.vehicle_class == 'HV2':
+            elif arrival.reached_target and arrival.vehicle_class == 'HV2':
                 shared[RESULT, INCENTIVE] += 300.0
         if step.collisions:
             colliders = sorted({vid for c in step.collisions for vid, cls in
@@ -255,7 +254,7 @@ class BaselineReward:
                 result.per_vehicle[vehicle.vehicle_id][EFFICIENCY, INCENTIVE] = \
                     c.speed * vehicle.speed / vehicle.lane_speed_limit
         for arrival in step.arrivals:
-            if arrival.vehicle_class == 'CAV' and arrival.exit_edge == TASK_EXIT:
+            if arrival.vehicle_class == 'CAV' and arrival.reached_target:
                 result.per_vehicle.setdefault(arrival.vehicle_id, np.zeros((4, 2)))[RESULT, INCENTIVE] += c.intention
         for vehicle_id in step.lane_changers:
             if vehicle_id in result.per_vehicle:

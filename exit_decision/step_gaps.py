@@ -25,7 +25,7 @@ def episode_and_step(cdr: bytes) -> tuple[int, int]:
 @dataclass
 class StepGaps:
     """Holes in one stream's steps within an episode: a message every ``stride`` steps is
-    expected (1 for states and graphs, the decision interval for commands). A hole is counted
+    expected (1 for states, the decision interval for graphs and commands). A hole is counted
     between two messages of one episode; a stream's start and end are not (a recorder or node
     may join late, and a stream's last message races its episode's end)."""
     stride: int = 1

@@ -1,8 +1,9 @@
 """Vehicle states and the neighbour search shared by the simulation, graph, reward and masks.
 
 A vehicle's *corridor* is what it can have a leader or follower in: a highway lane (the
-same lane index across Highway_0/1/2) or a ramp. Positions are front-bumper distances
-along the road from the start of Highway_0.
+same lane index across the highway sections) or a ramp. Positions are front-bumper distances
+along the road from the start of the first section. Edge names are the scenario config's
+(``RoadConfig.names``); nothing here knows them.
 """
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from dataclasses import dataclass, field
 
 VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
 INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT = -1, 0, 1
+#: The corridor name of the highway's lanes: ``(HIGHWAY, lane_index)``. Empty, so no edge (a
+#: ramp's corridor is ``(edge_id, 0)``) can be called the same.
+HIGHWAY = ''
 
 
 def vehicle_id_of(vehicle_class: str, serial: int) -> str:
@@ -29,12 +33,13 @@ def parse_vehicle_id(vehicle_id: str) -> tuple[str, int] | None:
 
 @dataclass(frozen=True, slots=True)
 class VehicleState:
-    """One vehicle at one step; mirrors exit_decision_msgs/VehicleState."""
+    """One vehicle at one step; mirrors exit_decision_msgs/VehicleState, plus ``on_highway``,
+    which the road gives (the message carries only the edge id)."""
     vehicle_id: str
     vehicle_class: str          # HV1 | HV2 | HV3 | CAV
     lane_index: int             # 0 = rightmost; 0 on a ramp
-    edge_id: str                # Highway_0..2, Exit_0..1 (the edge ahead while on a junction)
-    position: float             # [m] front bumper, from the start of Highway_0
+    edge_id: str                # a highway section or a ramp (the edge ahead while on a junction)
+    position: float             # [m] front bumper, from the start of the first section
     lateral_offset: float       # [m]
     speed: float                # [m/s]
     acceleration: float         # [m/s^2]
@@ -43,18 +48,15 @@ class VehicleState:
     intention: int              # INTENTION_* (last commanded lane change for a CAV)
     route_target: str           # last edge of the current route
     controlled: bool            # commanded by the decision policy
+    on_highway: bool            # on a highway section, not on a ramp (from the road's names)
 
     @property
     def is_cav(self) -> bool:
         return self.vehicle_class == 'CAV'
 
     @property
-    def on_highway(self) -> bool:
-        return self.edge_id.startswith('Highway')
-
-    @property
     def corridor(self) -> tuple[str, int]:
-        return ('Highway', self.lane_index) if self.on_highway else (self.edge_id, 0)
+        return (HIGHWAY, self.lane_index) if self.on_highway else (self.edge_id, 0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,7 +120,7 @@ class TrafficSnapshot:
         if lane_offset == 0:
             corridor = vehicle.corridor
         else:
-            corridor = ('Highway', vehicle.lane_index + lane_offset)
+            corridor = (HIGHWAY, vehicle.lane_index + lane_offset)
         return self.neighbours(corridor, vehicle.position, vehicle.length, exclude=vehicle.vehicle_id)
 
 
@@ -126,7 +128,8 @@ class TrafficSnapshot:
 class Arrival:
     vehicle_id: str
     vehicle_class: str
-    exit_edge: str          # Highway_2, Exit_0 or Exit_1
+    exit_edge: str          # the last highway section or a ramp
+    reached_target: bool    # left by the target exit (the CAVs' task)
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,4 +22,5 @@ def make_vehicle(vehicle_id: str, vehicle_class: str = 'HV1', *, lane: int = 0, 
     return VehicleState(vehicle_id=vehicle_id, vehicle_class=vehicle_class, lane_index=lane, edge_id=edge,
                         position=position, lateral_offset=0.0, speed=speed, acceleration=acceleration,
                         length=5.0, lane_speed_limit=limit, intention=intention,
-                        route_target='Highway_2', controlled=vehicle_class == 'CAV')
+                        route_target='Highway_2', controlled=vehicle_class == 'CAV',
+                        on_highway=edge.startswith('Highway'))

@@ -84,4 +84,28 @@ def test_compare_writes_a_csv_per_cell_reports_a_failing_cell_and_a_rerun_skips_
     assert main([*command, '--variant', 'tiny']) == 0
     assert '2 cells: 0 run now, 2 already done (skipped), 0 failed' in capsys.readouterr().out
     assert {path: path.stat().st_mtime_ns for path in (out / 'tiny').iterdir()} == stamps
-    assert '## tiny' in (out / 'summary.md').read_text()
+    assert '## tiny' in (out / 'comparison.md').read_text()
+
+
+def test_compare_trains_a_learned_method_and_reports_it_with_its_curve(tmp_path, capsys):
+    variants, override, training, out = (tmp_path / name for name in ('variants.yaml', 'graph.yaml',
+                                                                       'comparison.yaml', 'out'))
+    variants.write_text(yaml.safe_dump({'cells': {'tiny': TINY}}))
+    override.write_text(yaml.safe_dump({'graph': {'max_vehicles': 12}, 'scenario': TINY}))
+    training.write_text(yaml.safe_dump({'training_mode': 'CONP', 'seeds': [0], 'budget': {
+        'episodes': 2, 'warmup_decisions': 10, 'replay_size': 2000, 'batch_size': 8,
+        'demonstrations': {'episodes': 1, 'pretrain_updates': 20},
+        'validation': {'every_episodes': 2, 'episodes': 1, 'parallel': False}}}))
+    command = ['compare', '--variants', str(variants), '--override', str(override), '--train', 'dqn',
+               '--training', str(training), '--mode', 'CONP', '--episodes', '2', '--out', str(out),
+               '--workers', '2', '--retries', '0']
+    assert main(command) == 0
+    assert 'training: 1 training runs: 1 run now' in capsys.readouterr().out
+    assert (out / 'training' / 'dqn_s0' / 'policy.pt').is_file()
+    assert sorted(p.name for p in (out / 'tiny').glob('*_CONP.csv')) == ['dqn_s0_CONP.csv', 'rule_based_CONP.csv',
+                                                                         'sumo_CONP.csv']
+    page = (out / 'comparison.md').read_text()
+    assert '| dqn |' in page and 'dqn > rule_based (learned > rule-based)' in page
+    assert (out / 'comparison_learning_curves.png').stat().st_size > 0
+    assert main(command) == 0, 'a rerun reuses the trained run and the done cells'
+    assert 'training: 1 training runs: 0 run now, 1 already done' in capsys.readouterr().out

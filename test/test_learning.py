@@ -9,6 +9,7 @@ from exit_decision.learning.networks import GraphQNetwork, NetworkShape, normali
 from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.policy import PolicyError, load_policy, save_policy
 from exit_decision.reward import weights_of_input
+from exit_decision.traffic import TrafficSnapshot
 
 A = 4
 
@@ -127,32 +128,32 @@ class FixedNet(torch.nn.Module):
         return self.values.expand(len(rows), A)
 
 
-def agent_with(algorithm, online_values, target_values):
-    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings(algorithm, 1e-3, 0.05, 0.8, 10.0), seed=0)
+def agent_with(double, online_values, target_values):
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings(double, 1e-3, 0.05, 0.8, 10.0), seed=0)
     agent.online, agent.target = FixedNet(online_values), FixedNet(target_values)
     return agent
 
 
-@pytest.mark.parametrize('algorithm, expected_bootstrap', [
-    ('gqn', 7.0),      # the target net picks its own best allowed action (index 2: 7) and evaluates it
-    ('mdgqn', 5.0),    # the online net picks (index 3), the target net evaluates it (5)
+@pytest.mark.parametrize('double, expected_bootstrap', [
+    (False, 7.0),     # GQN, DQN: the target net picks its own best allowed action (index 2: 7) and evaluates it
+    (True, 5.0),      # MDGQN, DDQN: the online net picks (index 3), the target net evaluates it (5)
 ])
-def test_double_q_action_choice_under_the_next_mask(algorithm, expected_bootstrap):
+def test_double_q_action_choice_under_the_next_mask(double, expected_bootstrap):
     batch = {k: torch.from_numpy(v) for k, v in make_batch().items()}
     # action 0 is masked at s': its huge values must never be chosen
-    agent = agent_with(algorithm, online_values=[100.0, 0.0, 1.0, 3.0], target_values=[100.0, 1.0, 7.0, 5.0])
+    agent = agent_with(double, online_values=[100.0, 0.0, 1.0, 3.0], target_values=[100.0, 1.0, 7.0, 5.0])
     targets = agent.td_targets(batch, torch.tensor([[0, 0]]))
     assert targets.item() == pytest.approx(1.0 + 0.9 * expected_bootstrap)
 
 
 def test_a_vehicle_that_left_gets_a_terminal_target():
     batch = {k: torch.from_numpy(v) for k, v in make_batch(next_q_rows_alive=False).items()}
-    agent = agent_with('mdgqn', [0.0, 0.0, 1.0, 3.0], [0.0, 1.0, 7.0, 5.0])
+    agent = agent_with(True, [0.0, 0.0, 1.0, 3.0], [0.0, 1.0, 7.0, 5.0])
     assert agent.td_targets(batch, torch.tensor([[0, 0]])).item() == pytest.approx(1.0)
 
 
 def test_soft_update_moves_the_target_by_tau():
-    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings('gqn', 1e-3, 0.25, 0.8, 10.0), seed=0)
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings(False, 1e-3, 0.25, 0.8, 10.0), seed=0)
     before = [p.clone() for p in agent.target.parameters()]
     with torch.no_grad():
         for p in agent.online.parameters():
@@ -164,10 +165,10 @@ def test_soft_update_moves_the_target_by_tau():
 
 def test_margin_loss_pushes_the_demonstrated_action_up():
     batch = make_batch()
-    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings('mdgqn', 1e-2, 0.05, 0.8, 10.0), seed=0)
+    agent = GraphQAgent(NetworkShape(2, A), UpdateSettings(True, 1e-2, 0.05, 0.8, 10.0), seed=0)
     demo = np.array([True])
     for _ in range(200):
-        stats = agent.update(batch, demo, margin_weight=1.0)
+        stats, _ = agent.update(batch, demo, margin_weight=1.0)
     q = agent.online(torch.from_numpy(batch['features']), torch.from_numpy(batch['adjacency']))[0, 0]
     assert int(q.argmax()) == 0, 'the demonstrated action (0) is the greedy one'
     assert np.isfinite(stats['loss'])
@@ -181,7 +182,7 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
     save_policy(tmp_path / 'p.pt', net, metadata)
     policy = load_policy(tmp_path / 'p.pt')
     g = graph(('a', 'b', ''))
-    np.testing.assert_allclose(policy.q_values(g), net(torch.from_numpy(g.features)[None],
+    np.testing.assert_allclose(policy.q_values(g, TrafficSnapshot([])), net(torch.from_numpy(g.features)[None],
                                                        torch.from_numpy(g.adjacency)[None])[0].detach().numpy())
     assert policy.metadata['mode'] == 'AGGI' and policy.grid.size == 6
     with pytest.raises(PolicyError, match='no such policy file'):
@@ -217,7 +218,7 @@ def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
     w = np.array([0.25, 0.35, 0.15, 0.25, 0.6, 0.4])
     expected = net(torch.from_numpy(g.features)[None], torch.from_numpy(g.adjacency)[None],
                    torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
-    np.testing.assert_allclose(policy.q_values(g, w), expected, rtol=1e-6)
+    np.testing.assert_allclose(policy.q_values(g, TrafficSnapshot([]), w), expected, rtol=1e-6)
     with pytest.raises(PolicyError, match='needs the mode weights'):
         PolicyController(policy, shield=None)
 

@@ -54,7 +54,7 @@ def test_vehicle_state_array(node):
     got = round_trip(node, VehicleStateArray, msg, 'test_states')
     assert (got.episode, got.step) == (2, 42)
     assert got.header.stamp.sec == 4 and got.header.stamp.nanosec == 200_000_000
-    assert states_from_msg(got) == sample_vehicles()
+    assert states_from_msg(got, ('Highway_0', 'Highway_1', 'Highway_2')) == sample_vehicles()
 
 
 def test_traffic_graph(node):
@@ -87,7 +87,7 @@ def test_malformed_messages_are_rejected_naming_the_field():
     bad_speed = states_to_msg([make_vehicle('x', speed=1.0)], episode=0, step=0, step_length=0.1)
     bad_speed.vehicles[0].speed = math.nan
     with pytest.raises(MessageError, match="'x': speed is not finite"):
-        states_from_msg(bad_speed)
+        states_from_msg(bad_speed, ('Highway_0',))
     commands = commands_to_msg({'CAV_1': CavCommand(0, 0.0)}, episode=0, step=0, stamp=stamp_of(0.0),
                                mode='AGGI', algorithm='gqn', policy='p')
     commands.commands[0].acceleration = math.inf

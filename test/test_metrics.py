@@ -28,10 +28,10 @@ def test_metrics_of_a_hand_made_episode():
     # c1 brakes hard for two steps (one event), h2 once later (a second event)
     braking = make_vehicle('c1', 'CAV', speed=20.0, acceleration=-5.0)
     log.record(StepResult(2, 0.2, [braking, cav2, hv2], braking_starts=['c1']), scored(2.0))
-    log.record(StepResult(3, 0.3, [braking, cav2], arrivals=[Arrival('h2', 'HV2', 'Exit_1')],
+    log.record(StepResult(3, 0.3, [braking, cav2], arrivals=[Arrival('h2', 'HV2', 'Exit_1', True)],
                           collisions=[Collision('c2', 'x', 'CAV', 'HV1'), Collision('y', 'z', 'HV1', 'HV3')]),
                scored(-3.0))
-    log.record(StepResult(4, 0.4, [], arrivals=[Arrival('c1', 'CAV', 'Exit_1')]))
+    log.record(StepResult(4, 0.4, [], arrivals=[Arrival('c1', 'CAV', 'Exit_1', True)]))
     m = log.metrics()
     assert m['v_AVs'] == pytest.approx((20 + 10) * 3 / 6)
     assert m['v_s'] == pytest.approx(((20 + 10 + 30) * 2 + 20 + 10) / 8)

@@ -40,8 +40,8 @@ def inputs(step, lane_changes=0):
 
 
 def test_result_rewards_exits_to_their_cav_or_shared_and_collisions_to_the_cavs_in_them(literal):
-    step = step_of([], arrivals=[Arrival('c', 'CAV', 'Exit_1'), Arrival('h', 'HV2', 'Exit_1'),
-                                 Arrival('x', 'CAV', 'Exit_0'), Arrival('y', 'HV1', 'Exit_1')],
+    step = step_of([], arrivals=[Arrival('c', 'CAV', 'Exit_1', True), Arrival('h', 'HV2', 'Exit_1', True),
+                                 Arrival('x', 'CAV', 'Exit_0', False), Arrival('y', 'HV1', 'Exit_1', True)],
                    collisions=[Collision('a', 'b', 'HV1', 'HV2'), Collision('d', 'e', 'CAV', 'HV1')])
     own, shared = literal.raw(inputs(step))
     assert own['c'][0].tolist() == [300.0, 0.0]
@@ -98,7 +98,7 @@ def test_time_gaps_use_the_closing_vehicles_in_the_same_lane(literal):
 def test_any_modes_scalar_from_one_vector_is_the_papers_trace_formula(literal, project_config):
     braking = make_vehicle('b', 'CAV', speed=15.0, acceleration=-6.0)
     cruising = make_vehicle('c', 'CAV', position=200.0, speed=20.0, acceleration=0.0)
-    step = step_of([braking, cruising], arrivals=[Arrival('x', 'CAV', 'Exit_1')],
+    step = step_of([braking, cruising], arrivals=[Arrival('x', 'CAV', 'Exit_1', True)],
                    collisions=[Collision('h1', 'h2', 'HV1', 'HV1')])
     vector = literal.vector(inputs(step, lane_changes=2))
     own, shared = literal.raw(inputs(step, lane_changes=2))
@@ -136,7 +136,7 @@ def test_bounded_reward_stays_bounded_on_extreme_inputs(bounded, literal):
 def test_baseline_reward(project_config):
     reward = BaselineReward(project_config.reward('baseline'))
     cav = make_vehicle('cav', 'CAV', speed=25.0)
-    step = step_of([cav, make_vehicle('h', speed=10.0)], arrivals=[Arrival('x', 'CAV', 'Exit_1')],
+    step = step_of([cav, make_vehicle('h', speed=10.0)], arrivals=[Arrival('x', 'CAV', 'Exit_1', True)],
                    collisions=[Collision('a', 'b', 'HV1', 'HV1')], lane_changers=['cav', 'h'])
     c = project_config.reward('baseline')
     expected = c.intention + c.speed * 1.0 - c.lane_change * 1 - c.collision * 1

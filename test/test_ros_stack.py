@@ -12,11 +12,14 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.parameter import parameter_value_to_python
 
 from exit_decision.config import load_project
+from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      STATES_TOPIC, STREAM_QOS, ProbeNode)
+                                      OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode)
+from exit_decision.ros.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
+from exit_decision.scenario.geometry import RoadGeometry
 
 from ros_helpers import random_policies, small_config_dir, stop
 
@@ -63,10 +66,25 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
         topics.setdefault(topic, []).append(msg)
     steps = int(run.episodes[0]['steps'])
     assert len(topics[STATES_TOPIC]) == steps + 1, 'every state of the episode is in the bag'
-    assert len(topics[GRAPH_TOPIC]) == steps + 1
+    config = load_project(config_dir)
+    interval, road = config.env.decision_interval, config.scenario.road
+    assert [m.step for m in topics[GRAPH_TOPIC]] == list(range(0, steps + 1, interval)), 'graphs of decision steps only'
+    # each as the training's builder, fed every step, makes it: the rows are kept between decisions
+    builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit, road.lane_count)
+    every_step = {m.step: builder.build(states_from_msg(m, road.names.sections)) for m in topics[STATES_TOPIC]}
+    for m in topics[GRAPH_TOPIC]:
+        graph, expected = graph_from_msg(m), every_step[m.step]
+        assert graph.vehicle_ids == expected.vehicle_ids and np.array_equal(graph.features, expected.features) \
+            and np.array_equal(graph.adjacency, expected.adjacency), f'graph of step {m.step}'
     modes = [m.mode for m in topics[COMMANDS_TOPIC]]
     assert modes[0] == 'AGGP' and modes[-1] == 'CONP' and modes.count('CONP') < len(modes)
     assert len(topics[COMMANDS_TOPIC]) == steps // 5 + 1, 'a decision on every state of a 5th step, none missed'
+    sent = {(m.step, c.vehicle_id): (c.lane_change, c.acceleration) for m in topics[COMMANDS_TOPIC] for c in m.commands}
+    overridden = [(m.step, o) for m in topics.get(OVERRIDES_TOPIC, []) for o in m.overrides]
+    assert overridden, 'the shield overrode the random policy: the CAVs are recorded'
+    assert all(sent[(step, o.vehicle_id)] == (o.applied_lane_change, o.applied_acceleration)
+               and (o.preferred_lane_change, o.preferred_acceleration) != sent[(step, o.vehicle_id)]
+               for step, o in overridden), 'each override names the command sent instead of the one preferred'
     report = replay_decisions(bag, load_project(config_dir), policies)
     assert report.commands > 0 and report.matching == report.commands and report.missing_inputs == 0
     other = replay_decisions(bag, load_project(config_dir), policies, mode='AGGI')
@@ -212,6 +230,26 @@ def test_bridge_survives_a_decision_node_that_stops_and_restarts(setup):
             stop(process)
 
 
+def test_a_bridge_started_alone_waits_for_its_peers_saying_what_it_waits_for(setup):
+    """As with `ros2 run`: no step and no giving up (no startup_timeout by default), a line every
+    few seconds naming what is missing; once a listener and a commands publisher come, it steps."""
+    log = setup['root'] / 'bridge_alone.log'
+    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'episodes': 1}, log)
+    test = ProbeNode('alone_test')
+    states = []
+    try:
+        assert test.spin_until(lambda: log.read_text().count('waiting for') >= 2, 60), log.read_text()
+        text = log.read_text()
+        assert f'1 more subscriber(s) of {STATES_TOPIC}' in text and f'a publisher of {COMMANDS_TOPIC}' in text, text
+        assert bridge.poll() is None and 'starting anyway' not in text
+        test.node.create_subscription(VehicleStateArray, STATES_TOPIC, states.append, STREAM_QOS)
+        test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+        assert test.spin_until(lambda: states, 60), 'with its peers there, it steps'
+    finally:
+        test.close()
+        stop(bridge)
+
+
 def test_recorder_loses_nothing_on_sigterm(setup, tmp_path):
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
@@ -330,11 +368,11 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
 def bad_messages(latest: VehicleStateArray) -> list:
     """The fuzzer's findings (issue 12), aimed at what the stack is doing now: states for the
     next step with a bad field or sequence number, commands with a bad step or value."""
-    from exit_decision.ros.conversions import states_from_msg, states_to_msg
+    from exit_decision.ros.conversions import states_to_msg
     from conftest import make_vehicle
 
     episode, step = latest.episode, latest.step
-    vehicles = states_from_msg(latest) or [make_vehicle('HV1_0', position=20.0)]
+    vehicles = states_from_msg(latest, ('Highway_0', 'Highway_1', 'Highway_2')) or [make_vehicle('HV1_0', position=20.0)]
     states = [states_to_msg([dataclasses.replace(vehicles[0], **change), *vehicles[1:]], episode=episode,
                             step=step + 1, step_length=0.1, frame_id='fuzz')
               for change in ({'lane_index': 127}, {'lane_index': -128}, {'lane_index': 3}, {'lane_index': -1},
@@ -353,10 +391,13 @@ def bad_messages(latest: VehicleStateArray) -> list:
     return states + commands
 
 
+FLOOD_RATE = 1000   # [msg/s] bad messages sent while the stack runs: the rate that starved the commands (issue 12)
+
+
 def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
-    """The issue's bad messages, and a flood of them on the states topic (300 msg/s), sent to a
-    running synchronous stack: every node lives, counts what it rejected, and the stack decides
-    on every decision step with no command timeout."""
+    """The issue's bad messages, and a flood of them (FLOOD_RATE msg/s, two thirds on the states
+    topic, a third on the commands topic), sent to a running synchronous stack: every node lives,
+    counts what it rejected, and the stack decides on every decision step with no command timeout."""
     root, config_dir = setup['root'], setup['config_dir']
     test = ProbeNode('fuzz_test')
     counters = {name: diagnostics_of(test, name) for name in ('sumo_bridge', 'graph_builder', 'decision_node')}
@@ -378,7 +419,7 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
         sent, started = 0, time.monotonic()
         while not ended and time.monotonic() - started < 150:
             batch = bad_messages(latest[-1])
-            for _ in range(min(len(batch), int((time.monotonic() - started) * 300) - sent)):
+            for _ in range(min(len(batch), int((time.monotonic() - started) * FLOOD_RATE) - sent)):
                 msg = batch[sent % len(batch)]
                 (states if isinstance(msg, VehicleStateArray) else commands).publish(msg)
                 sent += 1
@@ -387,11 +428,11 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
         test.spin_until(lambda: False, 1.5)                   # the last diagnostics
         assert all(process.poll() is None for process in nodes[:2]), 'graph builder and decision node live'
         assert nodes[2].wait(30) == 0
-        steps = ended[0].steps
+        steps, interval = ended[0].steps, load_project(config_dir).env.decision_interval
         bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
-        assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {bridge}'
+        assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {counters}'
         assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
-        assert graph['graphs'] == steps + 1, 'a graph of every state of the bridge'
+        assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
         assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
         assert decision['rejected_out_of_sequence_states'] > 0, decision
     finally:
@@ -458,15 +499,14 @@ def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp
 
 def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
     """A bag of one synchronous episode's first ``steps`` steps as the stack records it: the
-    bridge's EVENT_STARTED, then states and graph of each step, 0.1 s apart. Its decision steps."""
+    bridge's EVENT_STARTED, then the states of each step and the graph of each decision step,
+    0.1 s apart. Its decision steps."""
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.graph import GraphBuilder
     from exit_decision.ros.bags import typestore
     from exit_decision.ros.conversions import episode_event_to_msg, graph_to_msg, states_to_msg
-    from exit_decision.scenario.geometry import RoadGeometry
 
     config = load_project(config_dir)
     road = config.scenario.road
@@ -487,9 +527,12 @@ def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
                 stamp = 1_000_000_000 + step * 100_000_000
                 msg = states_to_msg(result.vehicles, episode=0, step=result.step, step_length=0.1)
                 writer.write(states, stamp, serialize_message(msg))
-                writer.write(graphs, stamp, serialize_message(graph_to_msg(
-                    builder.build(result.vehicles), feature_set=config.graph.feature_set, episode=0,
-                    step=result.step, stamp=msg.header.stamp)))
+                if result.step % config.env.decision_interval:
+                    builder.slots(result.vehicles)
+                else:
+                    writer.write(graphs, stamp, serialize_message(graph_to_msg(
+                        builder.build(result.vehicles), feature_set=config.graph.feature_set, episode=0,
+                        step=result.step, stamp=msg.header.stamp)))
                 result, _ = env.simulate_step(None)
     finally:
         env.close()

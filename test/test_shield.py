@@ -5,7 +5,7 @@ import pytest
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.traffic import TrafficSnapshot
+from exit_decision.traffic import HIGHWAY, TrafficSnapshot
 
 from conftest import make_vehicle
 
@@ -110,7 +110,7 @@ def test_a_snapshot_with_an_added_vehicle_answers_like_one_built_with_it():
     grown, built = TrafficSnapshot(vehicles).with_vehicle(added), TrafficSnapshot([*vehicles, added])
     for lane in range(3):
         for position in (0.0, 44.0, 45.0, 52.0, 200.0):
-            assert grown.neighbours(('Highway', lane), position, 5.0) == built.neighbours(('Highway', lane), position, 5.0)
+            assert grown.neighbours((HIGHWAY, lane), position, 5.0) == built.neighbours((HIGHWAY, lane), position, 5.0)
     assert grown.by_id['new'] is added and len(grown.vehicles) == 13
 
 

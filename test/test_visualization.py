@@ -214,6 +214,18 @@ def test_show_command_writes_beside_the_bag_and_refuses_bad_input_in_one_line(la
     assert exit_.value.code == 2 and "'0': expected a number > 0" in capsys.readouterr().err
 
 
+def first_markers(test, publisher, arrays) -> None:
+    """Wait for the visualizer to subscribe, then send step 0 again (the same frame each time)
+    until the markers reader is matched too and the first array arrives."""
+    from exit_decision.ros.conversions import states_to_msg
+
+    assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30), 'the visualizer subscribes'
+    for _ in range(40):
+        publisher.publish(states_to_msg(snapshot(), episode=0, step=0, step_length=STEP))
+        if test.spin_until(lambda: arrays, 0.5):
+            return
+
+
 def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     from exit_decision_msgs.msg import VehicleStateArray
     from visualization_msgs.msg import Marker, MarkerArray
@@ -229,12 +241,7 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     publisher = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     node = start_node('visualizer', {'max_rate': 0.0}, tmp_path / 'visualizer.log')
     try:
-        assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30), 'the visualizer subscribes'
-        # until the markers reader is matched too, step 0 is sent again (the same frame each time)
-        for _ in range(40):
-            publisher.publish(states_to_msg(snapshot(), episode=0, step=0, step_length=STEP))
-            if test.spin_until(lambda: arrays, 0.5):
-                break
+        first_markers(test, publisher, arrays)
         assert arrays, 'markers for the vehicle states'
         publisher.publish(states_to_msg(snapshot()[:3], episode=0, step=1, step_length=STEP))
         assert test.spin_until(lambda: any(m.action == Marker.DELETE for m in arrays[-1].markers), 10)
@@ -245,6 +252,35 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     assert len(cubes) == 5 and {m.header.frame_id for m in arrays[0].markers} == {'map'}
     deleted = [m for m in arrays[-1].markers if m.action == Marker.DELETE and m.ns == 'vehicles']
     assert len(deleted) == 2, 'HV2_0 and HV3_0 left: their boxes are deleted'
+
+
+def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
+    from exit_decision_msgs.msg import VehicleStateArray
+    from visualization_msgs.msg import MarkerArray
+
+    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.launcher import start_node
+    from ros_helpers import stop
+
+    test = ProbeNode('visualizer_rate_test')
+    arrays = []
+    test.node.create_subscription(MarkerArray, MARKERS_TOPIC, arrays.append, STREAM_QOS)
+    publisher = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+    node = start_node('visualizer', {'max_rate': 0.5}, tmp_path / 'visualizer.log')   # one array per 2 s
+
+    def boxes():
+        return sum(m.ns == 'vehicles' and m.action == m.ADD for m in arrays[-1].markers)
+    try:
+        first_markers(test, publisher, arrays)
+        assert arrays and boxes() == 5
+        sent = len(arrays)
+        for step, count in ((1, 4), (2, 3)):   # within the rate limit of the first: both held back
+            publisher.publish(states_to_msg(snapshot()[:count], episode=0, step=step, step_length=STEP))
+        assert test.spin_until(lambda: len(arrays) > sent and boxes() == 3, 20), 'the last one comes after all'
+    finally:
+        test.close()
+        stop(node)
 
 
 def test_evaluate_show_draws_the_first_episodes_of_a_run_without_ros(tmp_path):
@@ -263,3 +299,147 @@ def test_evaluate_show_draws_the_first_episodes_of_a_run_without_ros(tmp_path):
     assert len(played) == 2 and entered == 12
     assert sorted(p.name for p in (tmp_path / 'show').iterdir()) == ['sumo_seed7_birds_eye.gif',
                                                                      'sumo_seed7_time_space.png']
+
+
+# --- shield overrides, CAV lane changes, the bridge's collision count --------------------------------
+
+def test_a_cav_the_shield_overrode_is_framed_until_its_next_command(layout):
+    from exit_decision.shield_overrides import ShieldOverride
+
+    frames = FrameBuilder(layout, STEP)
+    scene = MarkerScene(layout)
+    scene.update(frames.add(0, snapshot()))
+    override = ShieldOverride(CavCommand(1, 2.0), CavCommand(0, -1.0))
+    frames.shield({'CAV_0': override}, step=0)            # the overrides may come before their commands
+    frames.decide({'CAV_0': CavCommand(0, -1.0), 'CAV_1': CavCommand(0, 0.5)}, 'AGGP', step=0)
+    frame = frames.add(1, snapshot())
+    assert frame.new_overrides == {'CAV_0': override}
+    markers = scene.update(frame)
+    framed = [m for m in markers if m.namespace == 'shield_overrides']
+    ids = {m.marker_id: m.text for m in markers if m.namespace == 'vehicle_ids'}
+    assert [ids[m.marker_id] for m in framed] == ['CAV_0'], 'only the overridden CAV'
+    box = next(m for m in markers if m.namespace == 'vehicles' and ids[m.marker_id] == 'CAV_0')
+    assert framed[0].scale[0] > box.scale[0] and framed[0].position[:2] == box.position[:2]
+    assert [m.text for m in markers if m.namespace == 'shield_text'] == ['shield: +1 +2.0 -> +0 -1.0']
+    assert frames.add(2, snapshot()).overridden == {'CAV_0': override}, 'held with the command'
+    frames.decide({'CAV_0': CavCommand(0, 0.0)}, step=5)  # the next decision: not overridden
+    frames.shield({'CAV_0': override}, step=0)            # a late copy of the older decision's: ignored
+    later = scene.update(frames.add(6, snapshot()))
+    assert not [m for m in later if m.namespace == 'shield_overrides' and m.action == 'ADD'
+                and ids[m.marker_id] == 'CAV_0'], 'the next command without override clears it'
+    assert ('shield_overrides', next(i for i, t in ids.items() if t == 'CAV_0')) in {
+        m.key for m in later if m.action == 'DELETE'}
+
+
+def write_events_and_overrides(path, layout, p_collision):
+    """The fixture bag with CAV_0's command at step 10 overridden by the shield, CAV_1 released to
+    SUMO at step 24 and changing lane right at step 26, and the bridge's episode end."""
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
+    from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
+    from exit_decision.ros.conversions import (commands_to_msg, episode_event_to_msg, overrides_to_msg, stamp_of,
+                                               states_to_msg)
+    from exit_decision.shield_overrides import ShieldOverride
+
+    store = typestore()
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connections = {topic: writer.add_connection(topic, DEFAULT_TOPICS[topic], typestore=store)
+                       for topic in (STATES_TOPIC, COMMANDS_TOPIC, OVERRIDES_TOPIC, EPISODE_TOPIC)}
+        for step in range(40):
+            states = []
+            for v in snapshot():
+                if v.vehicle_id == 'HV1_0' and step >= 30:
+                    continue
+                lane = 2 if v.vehicle_id == 'CAV_0' and step > 12 else 1 if v.vehicle_id == 'CAV_1' and step > 26 \
+                    else v.lane_index
+                states.append(dataclasses.replace(v, position=v.position + 20.0 * STEP * step, lane_index=lane,
+                                                  controlled=v.controlled and not (v.vehicle_id == 'CAV_1'
+                                                                                   and step >= 24)))
+            stamp = 1_000_000_000 + step * 10_000_000
+            writer.write(connections[STATES_TOPIC], stamp, serialize_message(
+                states_to_msg(states, episode=0, step=step, step_length=STEP)))
+            if step % 5 == 0:
+                commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0)}
+                writer.write(connections[COMMANDS_TOPIC], stamp + 2, serialize_message(commands_to_msg(
+                    commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP', algorithm='a',
+                    policy='test')))
+            if step == 15:
+                overrides = {'CAV_0': ShieldOverride(CavCommand(0, 5.0), CavCommand(0, 1.0))}
+                writer.write(connections[OVERRIDES_TOPIC], stamp + 3, serialize_message(overrides_to_msg(
+                    overrides, episode=0, step=step, stamp=stamp_of(step * STEP))))
+        writer.write(connections[EPISODE_TOPIC], 2_000_000_000, serialize_message(episode_event_to_msg(
+            1, episode=0, seed=1, steps=39, time=3.9, metrics={
+                'v_AVs': 20.0, 'v_s': 20.0, 'p_collision': p_collision, 'p_collision_CAV': 0.0, 'N_braking': 0,
+                'braking_steps': 0, 'p_CAV': 1.0, 'p_HV2': 1.0, 'reward': 0.0})))
+
+
+@pytest.mark.parametrize('p_collision', [0.5, 0.0])
+def test_show_marks_overrides_every_cav_lane_change_and_trusts_the_bridges_collision_count(
+        project_config, layout, tmp_path, p_collision):
+    from exit_decision.ros.show import show_bag
+
+    bag = tmp_path / 'bag'
+    write_events_and_overrides(bag, layout, p_collision)
+    [shown] = show_bag(bag, project_config, tmp_path / 'out', progress=False)
+    d = shown.diagram
+    assert d.overrides == 1, 'CAV_0 overridden at step 15'
+    assert (d.lane_changes, d.sumo_lane_changes) == (2, 1), "CAV_0 by command, CAV_1 by SUMO's driver"
+    assert shown.trace.collisions == round(p_collision * 2)
+    assert d.collisions == (1 if p_collision else 0), 'HV1_0 vanished: a crash only if the bridge counted one'
+    summary = shown.summary()
+    assert f'the bridge counted {round(p_collision * 2)} collision(s)' in summary and '1 shield override(s)' in summary
+    image = np.asarray(Image.open(d.path).convert('RGB'))
+    from exit_decision.visualization.markers import OVERRIDE_COLOUR
+    assert sum(class_pixels(image, box, OVERRIDE_COLOUR[:3], 20) for box in d.plot_areas) > 10, 'override marked'
+
+
+def test_show_reads_the_replay_fixture_recorded_before_overrides_had_a_topic(project_config, tmp_path):
+    from pathlib import Path
+
+    from exit_decision.ros.show import show_bag
+
+    bag = Path(__file__).parent / 'fixtures' / 'replay_bag' / 'bag'
+    [shown] = show_bag(bag, project_config, tmp_path / 'out', start=0.0, end=5.0, progress=False)
+    assert shown.diagram.trajectories and shown.diagram.overrides == 0
+
+
+@pytest.mark.parametrize('driver', ['rule_based', 'policy'])
+def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver):
+    from exit_decision.agents.rule_based import RuleBasedDriver
+    from exit_decision.config import load_project
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.policy import PolicyController, load_policy
+    from exit_decision.reward import weight_input
+    from exit_decision.shield_overrides import shield_overrides
+    from ros_helpers import small_config_dir
+
+    config = load_project(small_config_dir(tmp_path / 'config'))
+    env = ExitDecisionEnv(config)
+    if driver == 'rule_based':
+        controller = RuleBasedDriver.for_env(env)
+    else:
+        from exit_decision.ros.decision_node import default_policy_dir
+        controller = PolicyController(load_policy(default_policy_dir() / 'mdgqn_conditioned' / 'policy.pt'),
+                                      env.shield, weight_input(config.mode('AGGP')), env.planner)
+    found = counted = 0
+    try:
+        env.reset(seed=7)
+        done = False
+        while not done:
+            decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
+            overrides = shield_overrides(decision, env.actions)
+            assert len(overrides) == decision.overridden
+            for vehicle_id, override in overrides.items():
+                assert override.applied == env.actions.command(decision.actions[vehicle_id])
+                assert override.preferred != override.applied
+            found, counted = found + len(overrides), counted + decision.overridden
+            action = np.full(env.graph.num_nodes, env.actions.index(0, 0.0))
+            for vehicle_id, index in decision.actions.items():
+                action[env.graph.row_of()[vehicle_id]] = index
+            _, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    finally:
+        env.close()
+    assert counted > 0, 'the episode has overrides to find'

@@ -2,11 +2,12 @@
 
 A CAV on a lane of its route (``RoadGeometry.route_lanes``) is the policy's: it chooses its
 acceleration and its lane changes, but not a change that leaves the route. A CAV off its
-route (it entered in lane 0 before Exit_0, or is not yet in lane 0 before Exit_1) is driven by
-the rule-based driver's lane plan and gap search until it is back on it. Why: the learned
-policies' whole return gap to the teacher was missed exits, made by deadline-critical lane
-choices (riding beside a gap instead of dropping back, a change into the exit lane of
-Exit_0) that the reward cannot tell apart from style (docs/design.md, "Learning").
+route (it entered in lane 0 before the first exit, or is not yet in lane 0 before the target
+exit) is driven by the rule-based driver's lane plan and gap search until it is back on it.
+Why: the learned policies' whole return gap to the teacher was missed exits, made by
+deadline-critical lane choices (riding beside a gap instead of dropping back, a change into
+the exit lane of the first exit) that the reward cannot tell apart from style
+(docs/design.md, "Learning").
 """
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
 """A rule-based CAV driver in the policy's own action space: the demonstrator and a baseline.
 
-Lane plan: before Exit_0, hold lane 1 (out of lane 0, which would take Exit_0, and one change
-from lane 0); after Exit_0's junction, move right into lane 0 before Exit_1's diverge.
-Speed: IDM towards the lane's limit, slowing to the ramp's limit before Exit_1 with a
-comfortable deceleration; while waiting for a gap to the right, it drops back a little.
+Lane plan: before the first exit, hold lane 1 (out of lane 0, which would take the first exit,
+and one change from lane 0); after the first exit's junction, move right into lane 0 before the
+target exit's diverge. Speed: IDM towards the lane's limit, slowing to the ramp's limit before
+the target exit with a comfortable deceleration; while waiting for a gap to the right, it drops back a little.
 Every choice is made under the same shield as the learned policy, and quantised to the grid.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from exit_decision.agents.shield import Decision, Shield
 from exit_decision.config import RuleBasedConfig
 from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.traffic import TrafficSnapshot, VehicleState
+from exit_decision.traffic import HIGHWAY, TrafficSnapshot, VehicleState
 
 if TYPE_CHECKING:
     from exit_decision.env import ExitDecisionEnv
@@ -44,18 +44,18 @@ class RuleBasedDriver:
                    parameters or env.config.env.rule_based)
 
     def target_lane(self, vehicle: VehicleState) -> int:
-        """The route lane nearest to lane 0 (before Exit_0: lane 1, one change from the exit
-        lane to come); past Exit_1's diverge the lane held (the task is decided)."""
-        if vehicle.position < self.geometry.diverge_at['Highway_1']:
+        """The route lane nearest to lane 0 (before the first exit: lane 1, one change from the
+        exit lane to come); past the target exit's diverge the lane held (the task is decided)."""
+        if vehicle.position < self.geometry.target_exit.diverge_at:
             return min(self.geometry.route_lanes(vehicle.position))
         return vehicle.lane_index
 
     def desired_speed(self, vehicle: VehicleState) -> float:
         limit = vehicle.lane_speed_limit
-        if vehicle.on_highway and (self.geometry.merge_done_at['Highway_0'] <= vehicle.position
-                                   < self.geometry.diverge_at['Highway_1']):
-            # slow to the ramp's limit by the Exit_1 diverge, braking comfortably
-            distance = max(self.geometry.diverge_at['Highway_1'] - vehicle.position, 0.0)
+        first, target = self.geometry.first_exit, self.geometry.target_exit
+        if vehicle.on_highway and first.merge_done_at <= vehicle.position < target.diverge_at:
+            # slow to the ramp's limit by the target exit's diverge, braking comfortably
+            distance = max(target.diverge_at - vehicle.position, 0.0)
             limit = min(limit, math.sqrt(self.ramp_speed_limit ** 2
                                          + 2 * self.parameters.comfortable_braking * distance))
         return limit
@@ -80,8 +80,9 @@ class RuleBasedDriver:
 
     def urgency(self, vehicle: VehicleState) -> float:
         """0 far from the diverge where the lane must be reached, rising to 1 at its last metres."""
-        deadline_edge = 'Highway_0' if vehicle.position < self.geometry.merge_done_at['Highway_0'] else 'Highway_1'
-        remaining = self.geometry.diverge_at[deadline_edge] - self.geometry.commit_distance - vehicle.position
+        first = self.geometry.first_exit
+        deadline = first if vehicle.position < first.merge_done_at else self.geometry.target_exit
+        remaining = deadline.diverge_at - self.geometry.commit_distance - vehicle.position
         return float(np.clip(1.0 - remaining / self.parameters.urgency_distance, 0.0, 1.0))
 
     def change_is_acceptable(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot) -> bool:
@@ -93,7 +94,7 @@ class RuleBasedDriver:
         limit = -(p.comfortable_braking + (p.urgent_braking - p.comfortable_braking) * self.urgency(vehicle))
         if self.acceleration(vehicle, snapshot, lane) < limit:
             return False
-        around = snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+        around = snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
                                      exclude=vehicle.vehicle_id)
         follower = around.follower
         if follower is None:
@@ -119,9 +120,9 @@ class RuleBasedDriver:
         and the own lane's IDM allows that speed in full. Otherwise it drops back: a CAV that
         half pulls ahead rides alongside a follower that slows with it (near the exit, where
         both slow for the ramp), and the change never comes (measured: 16 of 300 CAVs missed
-        Exit_1 that way on the demonstration seeds, 0 with this rule)."""
+        the target exit that way on the demonstration seeds, 0 with this rule)."""
         p = self.parameters
-        around = snapshot.neighbours(('Highway', vehicle.lane_index + lane_change), vehicle.position,
+        around = snapshot.neighbours((HIGHWAY, vehicle.lane_index + lane_change), vehicle.position,
                                      vehicle.length, exclude=vehicle.vehicle_id)
         if around.leader is None and around.follower is None:
             return accel

@@ -26,8 +26,7 @@ import numpy as np
 from exit_decision.actions import ActionGrid
 from exit_decision.config import ProjectConfig, ShieldConfig
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.scenario.sumo_inputs import DIVERGES
-from exit_decision.traffic import TrafficSnapshot, VehicleState
+from exit_decision.traffic import HIGHWAY, TrafficSnapshot, VehicleState
 
 #: chooses an action index for a vehicle, given its mask over the grid
 Chooser = Callable[[VehicleState, np.ndarray], int]
@@ -37,7 +36,12 @@ Chooser = Callable[[VehicleState, np.ndarray], int]
 class Decision:
     actions: dict[str, int]              # vehicle id -> chosen action index
     masks: dict[str, np.ndarray]         # vehicle id -> the mask it chose under
-    overridden: int                      # how many CAVs' unmasked first choice was masked
+    refused: dict[str, int]              # vehicle id -> its unmasked first choice, where the mask refused it
+
+    @property
+    def overridden(self) -> int:
+        """How many CAVs the shield overrode."""
+        return len(self.refused)
 
 
 class Shield:
@@ -60,10 +64,11 @@ class Shield:
         if not vehicle.on_highway:
             return snapshot.neighbours(vehicle.corridor, vehicle.position, vehicle.length,
                                        exclude=vehicle.vehicle_id)
-        options = [snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+        options = [snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
                                        exclude=vehicle.vehicle_id)]
-        if lane == 0 and vehicle.edge_id in DIVERGES:
-            options.append(snapshot.neighbours((DIVERGES[vehicle.edge_id], 0), vehicle.position,
+        exit_ = self.geometry.exits.get(vehicle.edge_id)
+        if lane == 0 and exit_ is not None:
+            options.append(snapshot.neighbours((exit_.ramp, 0), vehicle.position,
                                                vehicle.length, exclude=vehicle.vehicle_id))
         return min(options, key=lambda n: n.leader_gap)
 
@@ -95,7 +100,7 @@ class Shield:
                 continue
             lane = vehicle.lane_index + lane_change
             ok = np.ones(len(grid.accelerations), dtype=bool)
-            around = (snapshot.neighbours(('Highway', lane), vehicle.position, vehicle.length,
+            around = (snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
                                           exclude=vehicle.vehicle_id) if vehicle.on_highway
                       else snapshot.neighbours_of(vehicle))
             if lane_change and c.lane_gap:
@@ -126,7 +131,7 @@ class Shield:
         ``preferred`` (optional) is the choice without masks, to count overrides; ``restrict``
         (optional) narrows a CAV's mask further (the lane planner's route), never to nothing."""
         present = [snapshot.by_id[vid] for vid in cav_ids]
-        actions, masks, overridden = {}, {}, 0
+        actions, masks, refused = {}, {}, {}
         for vehicle in sorted(present, key=lambda v: -v.position):
             mask = self.mask(vehicle, snapshot)
             if restrict is not None:
@@ -134,12 +139,13 @@ class Shield:
             action = choose(vehicle, mask)
             if not mask[action]:
                 raise ValueError(f'{vehicle.vehicle_id}: the chooser picked masked action {action}')
-            if preferred is not None and not mask[preferred(vehicle)]:
-                overridden += 1
+            first_choice = preferred(vehicle) if preferred is not None else action
+            if not mask[first_choice]:
+                refused[vehicle.vehicle_id] = first_choice
             actions[vehicle.vehicle_id], masks[vehicle.vehicle_id] = action, mask
             lane_change = int(self.grid.lane_change_of[action])
             if lane_change and self.config.gap_reservation:
                 snapshot = snapshot.with_vehicle(dataclasses.replace(
                     vehicle, vehicle_id=f'{vehicle.vehicle_id}#reserved',
                     lane_index=vehicle.lane_index + lane_change))
-        return Decision(actions, masks, overridden)
+        return Decision(actions, masks, refused)

@@ -13,6 +13,7 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
 from exit_decision.policy import GraphPolicy, PolicyController
 from exit_decision.reward import scalar, weight_input
+from exit_decision.shield_overrides import shield_overrides
 from exit_decision.traffic import VehicleState
 from exit_decision.visualization.episodes import EpisodeRecorder, ShowEpisodes
 
@@ -52,7 +53,8 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
             result.overrides += decision.overridden
             result.decisions += len(decision.actions)
             if recorder is not None:
-                recorder.decide(env.commands(action), decision.overridden)
+                recorder.decide(env.commands(action),
+                                shield_overrides(decision, env.actions))
         _, _, terminated, truncated, info = env.step(action)
         if recorder is not None:
             recorder.steps(info['step_results'])
@@ -91,13 +93,14 @@ def scored_episodes(episodes: list[dict], weights) -> list[dict]:
 
 
 def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[str], seeds: list[int],
-                    show: ShowEpisodes | None = None) -> list[EvaluatedRun]:
+                    show: ShowEpisodes | None = None, name: str | None = None) -> list[EvaluatedRun]:
     """A policy on the seeds, scored under each mode: a conditioned one acts at each mode's
-    weights, a per-mode one acts once (for its own mode)."""
+    weights, a per-mode one acts once (for its own mode). ``name``: the run's (default
+    <algorithm>_<mode> of the checkpoint)."""
     config = env.config
     policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
                             env.actions)
-    name = f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
+    name = name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:

@@ -198,9 +198,9 @@ def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditio
     return lines
 
 
-def speed_orderings(evaluation_dir: Path, run: str, pairs=(('AGGI', 'CONI'), ('AGGP', 'CONP'),
-                                                          ('AGGI', 'AGGP'), ('CONI', 'CONP'))) -> list[str]:
-    """Paired speed differences between modes of one run on the same seeds."""
+def speed_orderings(evaluation_dir: Path, run: str, pairs: Sequence[tuple[str, str]]) -> list[str]:
+    """Paired speed differences between modes of one run on the same seeds, for each (faster,
+    slower) pair (``ModeMatrix.speed_orderings``: what the modes' names promise)."""
     lines = []
     for fast, slow in pairs:
         a, b = evaluation_dir / f'{run}_{fast}.csv', evaluation_dir / f'{run}_{slow}.csv'
@@ -249,7 +249,7 @@ def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
 
 
 def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
-                 figures_dir: Path, out: Path, max_steps: int) -> Path:
+                 figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]]) -> Path:
     """docs/results.md from the generated artefacts: nothing in it is typed by hand."""
     relative = lambda path: Path(path).resolve().relative_to(out.parent.resolve()).as_posix()  # noqa: E731
     commands = evaluation_dir.parent / 'commands.txt'
@@ -273,7 +273,7 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
               'A conditioned policy acts at each mode\'s weights; drivers and per-mode policies drive the same '
               'episodes whatever the mode scoring them, so only the conditioned runs are compared here.', '',
               *[line for run in sorted({r['run'] for r in comparison if r['run'].endswith(CONDITIONED_SUFFIX)})
-                for line in speed_orderings(evaluation_dir, run)], '',
+                for line in speed_orderings(evaluation_dir, run, speed_pairs)], '',
               '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
               '## Training', '', *training_lines(run_dirs), '']
     tradeoff = tradeoff_dir / 'tradeoff.png'

@@ -14,26 +14,27 @@ others.
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 from tqdm import tqdm
 
 from exit_decision.actions import ActionGrid
-from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project, load_yaml, parse
+from exit_decision.config import (ConfigError, ProjectConfig, TrainingConfig, deep_merge, default_config_dir,
+                                  load_project, load_yaml, parse)
 from exit_decision.errors import UsageError
-from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy
-from exit_decision.evaluation.metrics import markdown_table, summarize
-from exit_decision.evaluation.report import (REFERENCE_DRIVERS, comparison_markdown, driver_runs, paired_comparison,
-                                             write_run)
+from exit_decision.evaluation.evaluate import EvaluatedRun, evaluate_policy
+from exit_decision.evaluation.report import REFERENCE_DRIVERS, driver_runs, write_run
 from exit_decision.tables import read_rows
 
 CellName = Annotated[str, StringConstraints(pattern=r'^[A-Za-z0-9_.-]+$')]   # a directory name
@@ -83,13 +84,15 @@ class Cell:
                    for path in self.files(out_dir))
 
 
-def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes: Sequence[str]) -> list[Cell]:
+def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes: Sequence[str],
+               trained: dict[str, Path] | None = None) -> list[Cell]:
     """The cells of the sweep over the variants of ``configs``; a method is a reference driver
-    or a policy.pt file (checked here against the graph and actions, which no variant changes)."""
+    or a policy.pt file (checked here against the graph and actions, which no variant changes);
+    ``trained``: policies named by their training run (``<method>_s<seed>``)."""
     from exit_decision.policy import load_policy
 
     cells, names = [], set()
-    for method in methods:
+    for method, run_name in [*((m, None) for m in methods), *((str(path), name) for name, path in (trained or {}).items())]:
         if method in REFERENCE_DRIVERS:
             name, policy, per_mode = method, None, [tuple(modes)]
         elif Path(method).suffix == '.pt':
@@ -97,7 +100,7 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
             config = next(iter(configs.values()))
             policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
                                     ActionGrid(config.env.actions))
-            name = f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
+            name = run_name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
             per_mode = [(mode,) for mode in modes] if policy.conditioned else [tuple(modes)]
             policy = Path(method)
         else:
@@ -118,7 +121,7 @@ def run_cell(cell: Cell, config: ProjectConfig, seeds: Sequence[int]) -> list[Ev
         return driver_runs(config, cell.method, cell.modes, seeds)
     env = ExitDecisionEnv(config, mode=cell.modes[0])
     try:
-        return evaluate_policy(env, load_policy(cell.policy), cell.modes, seeds)
+        return evaluate_policy(env, load_policy(cell.policy), cell.modes, seeds, name=cell.method)
     finally:
         env.close()
 
@@ -145,9 +148,10 @@ class SweepResult:
     done: int = 0
     failed: dict[str, str] = field(default_factory=dict)   # cell name -> error
     seconds: float = 0.0                                   # from the first task to the last result
+    unit: str = 'cells'
 
     def summary(self) -> str:
-        line = (f'{self.cells} cells: {self.done} run now, {self.skipped} already done (skipped), '
+        line = (f'{self.cells} {self.unit}: {self.done} run now, {self.skipped} already done (skipped), '
                 f'{len(self.failed)} failed')
         return '\n'.join([line] + [f'  failed: {name}: {error}' for name, error in self.failed.items()])
 
@@ -175,35 +179,40 @@ def _error_text(error: Exception) -> str:
     return re.sub(r'\s+', ' ', f'{type(cause).__name__}: {cause}').strip()[:300]
 
 
-def run_sweep(cells: Sequence[Cell], configs: dict[str, ProjectConfig], seeds: Sequence[int], out_dir: Path,
-              address: str | None = None, workers: int | None = None, retries: int = 2,
-              progress: bool = True) -> SweepResult:
-    """Run every cell not done yet (on these seeds) in ``out_dir`` as a Ray task (one simulation per worker
-    process), writing each cell's files as it finishes; ``retries``: further attempts of a
-    cell whose task raised or whose worker died."""
-    result = SweepResult(cells=len(cells))
-    pending = [cell for cell in cells if not cell.done(out_dir, seeds)]
-    result.skipped = len(cells) - len(pending)
-    if not pending:
+@dataclass(frozen=True)
+class Job:
+    """One Ray task: ``function(*args)`` in a fresh worker process; ``done(result)`` in the driver."""
+    name: str
+    function: Callable
+    args: tuple
+    done: Callable[[Any], None]
+
+
+def run_on_ray(jobs: Sequence[Job], result: SweepResult, address: str | None, workers: int | None, retries: int,
+               progress: bool) -> SweepResult:
+    """Run the jobs as Ray tasks (``max_calls=1``: one simulation per worker process), each
+    ``done`` as its task finishes; ``retries``: further attempts of a task that raised or whose
+    worker died; failures are recorded in ``result`` without stopping the others."""
+    if not jobs:
         return result
     import exit_decision
     start_ray(address, workers or os.cpu_count() or 1, Path(exit_decision.__file__).resolve().parent.parent)
     import ray
     try:
-        remote = ray.remote(num_cpus=1, max_calls=1, max_retries=retries, retry_exceptions=True)(run_cell)
         started = time.perf_counter()
-        futures = {remote.remote(cell, configs[cell.variant], list(seeds)): cell for cell in pending}
-        with tqdm(total=len(cells), initial=result.skipped, desc='cells', unit='cell', disable=not progress) as bar:
+        futures = {ray.remote(num_cpus=1, max_calls=1, max_retries=retries, retry_exceptions=True)(job.function)
+                   .remote(*job.args): job for job in jobs}
+        with tqdm(total=result.cells, initial=result.skipped, desc=result.unit, unit='task', disable=not progress) as bar:
             while futures:
                 ready, _ = ray.wait(list(futures), num_returns=1)
-                cell = futures.pop(ready[0])
+                job = futures.pop(ready[0])
                 try:
-                    runs = ray.get(ready[0])
+                    value = ray.get(ready[0])
                 except ray.exceptions.RayError as error:
-                    result.failed[cell.name] = _error_text(error)
-                    bar.write(f'failed after {retries + 1} attempt(s): {cell.name}: {result.failed[cell.name]}')
+                    result.failed[job.name] = _error_text(error)
+                    bar.write(f'failed after {retries + 1} attempt(s): {job.name}: {result.failed[job.name]}')
                 else:
-                    write_cell(out_dir, cell, runs, ActionGrid(configs[cell.variant].env.actions))
+                    job.done(value)
                     result.done += 1
                 bar.update()
         result.seconds = time.perf_counter() - started
@@ -212,25 +221,85 @@ def run_sweep(cells: Sequence[Cell], configs: dict[str, ProjectConfig], seeds: S
     return result
 
 
-def write_summary(out_dir: Path, cells: Sequence[Cell], configs: dict[str, ProjectConfig], modes: Sequence[str],
-                  command: str) -> Path:
-    """``<out>/summary.md``: per variant, mean ± std of each finished run and each run against
-    the neutral teacher (paired over seeds), read back from the CSVs."""
-    sections = [(f'# Comparison sweep\n\nMade by `{command}`; per variant: mean ± std over episodes, then each '
-                 f'run minus the teacher on the same seeds (95% intervals).')]
-    for variant, config in configs.items():
-        runs = [EvaluatedRun(path.stem, [{k: float(v) for k, v in row.items()} for row in read_rows(path)],
-                             EvaluationResult())
-                for cell in cells if cell.variant == variant for path in cell.files(out_dir) if path.is_file()]
-        if not runs:
-            continue
-        sections.append(f'## {variant}\n\n' + markdown_table([(run.label, summarize(run.episodes)) for run in runs]))
-        paired = paired_comparison(runs, modes, config.scenario.max_steps)
-        if paired:
-            sections.append(comparison_markdown(paired))
-    path = out_dir / 'summary.md'
-    path.write_text('\n\n'.join(sections) + '\n', encoding='utf-8')
-    return path
+def run_sweep(cells: Sequence[Cell], configs: dict[str, ProjectConfig], seeds: Sequence[int], out_dir: Path,
+              address: str | None = None, workers: int | None = None, retries: int = 2,
+              progress: bool = True) -> SweepResult:
+    """Run every cell not done yet (on these seeds) in ``out_dir``, writing each cell's files as
+    it finishes."""
+    pending = [cell for cell in cells if not cell.done(out_dir, seeds)]
+    result = SweepResult(cells=len(cells), skipped=len(cells) - len(pending))
+    jobs = [Job(cell.name, run_cell, (cell, configs[cell.variant], list(seeds)),
+                partial(write_cell, out_dir, cell, grid=ActionGrid(configs[cell.variant].env.actions)))
+            for cell in pending]
+    return run_on_ray(jobs, result, address, workers, retries, progress)
+
+
+# --- training the learned methods ---------------------------------------------------------------
+
+class ComparisonTraining(BaseModel):
+    """``config/comparison.yaml``: how ``compare`` trains the learned methods."""
+    model_config = ConfigDict(extra='forbid', frozen=True)
+    training_mode: str
+    seeds: Annotated[list[int], Field(min_length=1)]
+    budget: dict     # merged over training.yaml for every method alike (before the method's own settings)
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """One learned method trained with one seed on the base scenario."""
+    method: str
+    seed: int
+    mode: str
+
+    @property
+    def name(self) -> str:
+        return f'{self.method}_s{self.seed}'
+
+    def directory(self, out_dir: Path) -> Path:
+        return out_dir / 'training' / self.name
+
+    def done(self, out_dir: Path, config: ProjectConfig) -> bool:
+        """Finished (timing.json is the trainer's last file: an interrupted run has none) with
+        this config (another budget or setting: train again)."""
+        directory = self.directory(out_dir)
+        if not (directory / 'timing.json').is_file():
+            return False
+        recorded = json.loads((directory / 'config.json').read_text())
+        return (recorded['episodes'], recorded['config']) == (config.training.episodes,
+                                                             json.loads(json.dumps(config.model_dump())))
+
+
+def load_comparison_training(path: Path, config: ProjectConfig,
+                             methods: Sequence[str]) -> tuple[list[TrainingRun], ProjectConfig, dict]:
+    """The training runs of ``methods``, the base config under the stated budget, the budget."""
+    settings = parse(ComparisonTraining, load_yaml(path), path)
+    try:
+        config.mode(settings.training_mode)
+        training = parse(TrainingConfig, deep_merge(config.training.model_dump(), settings.budget), 'budget')
+        budgeted = config.model_copy(update={'training': training})
+        for method in methods:
+            budgeted.training.of_method(method)
+    except ConfigError as error:
+        raise ConfigError(f'{path}: {error}') from None
+    runs = [TrainingRun(method, seed, settings.training_mode) for method in methods for seed in settings.seeds]
+    return runs, budgeted, settings.budget
+
+
+def run_training(run: TrainingRun, config: ProjectConfig, directory: Path) -> str:
+    """(A Ray task) train one method with one seed from scratch; the kept policy.pt's path."""
+    from exit_decision.learning.trainer import Trainer
+
+    shutil.rmtree(directory, ignore_errors=True)   # an interrupted run starts afresh
+    return str(Trainer(config, run.method, run.mode, run.seed, directory).run(config.training.episodes, progress=False))
+
+
+def run_trainings(runs: Sequence[TrainingRun], config: ProjectConfig, out_dir: Path, address: str | None = None,
+                  workers: int | None = None, retries: int = 2, progress: bool = True) -> SweepResult:
+    """Train every run not done yet, one Ray task each (a rerun skips finished runs)."""
+    pending = [run for run in runs if not run.done(out_dir, config)]
+    result = SweepResult(cells=len(runs), skipped=len(runs) - len(pending), unit='training runs')
+    jobs = [Job(run.name, run_training, (run, config, run.directory(out_dir)), lambda _: None) for run in pending]
+    return run_on_ray(jobs, result, address, workers, retries, progress)
 
 
 def default_methods() -> list[str]:

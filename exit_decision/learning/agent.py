@@ -1,11 +1,13 @@
-"""GQN and MDGQN updates on graph batches (paper 000 Section 3; SPEC section 4).
+"""The Q-learning update every method shares (paper 000 Section 3; SPEC sections 4 and 7).
 
 Every CAV row is a Q-learner with shared weights. For a row i that acted at t, with R_i the
 row's m-step return (its own credit or the shared reward, scored under the batch element's
 mode weights w by the trainer) and gamma^K the window's discount:
-- GQN:   y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_target(s')_i
-- MDGQN: y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax over allowed actions of Q_online(s')_i
-(the m of the window is a training setting: 1 for GQN, 3 for MDGQN by default). A
+- single (GQN, DQN):    y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_target(s')_i
+- double (MDGQN, DDQN): y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_online(s')_i
+(the m of the window is the method's: 1 for GQN, 3 for MDGQN). With prioritized replay each
+transition's loss is weighted by its importance weight and its new priority is the largest
+|TD error| of its rows. A
 mode-conditioned network evaluates every Q at the same w the reward was scored with. A row whose
 vehicle left (or the episode ended) has no bootstrap. Demonstration rows add DQfD's
 large-margin loss max_a [Q(s,a) + l(a, a_E)] - Q(s, a_E) over the allowed actions.
@@ -15,20 +17,15 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Literal
-
 import numpy as np
 import torch
 from torch import nn
 
 from exit_decision.learning.networks import GraphQNetwork, NetworkShape
 
-Algorithm = Literal['gqn', 'mdgqn']
-
-
 @dataclass(frozen=True)
 class UpdateSettings:
-    algorithm: Algorithm
+    double: bool           # choose the bootstrap action with the online network (double Q-learning)
     learning_rate: float
     tau: float
     margin: float          # l(a, a_E) for a != a_E
@@ -63,7 +60,7 @@ class GraphQAgent:
         alive = batch['alive'][b, r] & next_mask.any(-1)
         weights = batch.get('weights')
         target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
-        if self.settings.algorithm == 'mdgqn':
+        if self.settings.double:
             chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
         else:
             chooser = target_q
@@ -72,8 +69,10 @@ class GraphQAgent:
         bootstrap = torch.where(alive, bootstrap, torch.zeros_like(bootstrap))
         return batch['rewards'][b, r] + batch['discounts'][b] * bootstrap
 
-    def losses(self, batch: dict[str, torch.Tensor], demo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(TD loss, margin loss) means over the acting rows (margin: demonstration rows only)."""
+    def losses(self, batch: dict[str, torch.Tensor], demo: torch.Tensor,
+               sample_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(TD loss, margin loss, |TD error| per batch element): means over the acting rows
+        (TD: weighted by their transition's importance weight; margin: demonstration rows only)."""
         rows = torch.nonzero(batch['actions'] >= 0)
         b, r = rows[:, 0], rows[:, 1]
         actions = batch['actions'][b, r]
@@ -81,24 +80,30 @@ class GraphQAgent:
         q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
         with torch.no_grad():
             targets = self.td_targets(batch, rows)
-        td = nn.functional.smooth_l1_loss(q_taken, targets)
+        per_row = nn.functional.smooth_l1_loss(q_taken, targets, reduction='none')
+        td = (per_row * sample_weights[b]).mean() if sample_weights is not None else per_row.mean()
+        errors = torch.zeros(len(demo), dtype=q.dtype).scatter_reduce_(
+            0, b, (q_taken - targets).abs().detach(), 'amax', include_self=False)
         demo_rows = demo[b]
         if not demo_rows.any():
-            return td, torch.zeros((), dtype=td.dtype)
+            return td, torch.zeros((), dtype=td.dtype), errors
         margins = torch.full_like(q, self.settings.margin)
         margins.scatter_(1, actions.unsqueeze(1), 0.0)
         allowed = batch['masks'][b, r]
         best = (q + margins).masked_fill(~allowed, -torch.inf).max(1).values
         margin_loss = (best - q_taken)[demo_rows].mean()
-        return td, margin_loss
+        return td, margin_loss, errors
 
-    def update(self, batch: dict[str, np.ndarray], demo: np.ndarray, margin_weight: float) -> dict[str, float]:
+    def update(self, batch: dict[str, np.ndarray], demo: np.ndarray, margin_weight: float,
+               sample_weights: np.ndarray | None = None) -> tuple[dict[str, float], np.ndarray]:
+        """One gradient step; (losses, |TD error| per batch element for the priorities)."""
         tensors = {key: torch.from_numpy(value) for key, value in batch.items()}
-        td, margin = self.losses(tensors, torch.from_numpy(demo))
+        td, margin, errors = self.losses(tensors, torch.from_numpy(demo),
+                                         None if sample_weights is None else torch.from_numpy(sample_weights))
         loss = td + margin_weight * margin
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(self.online.parameters(), self.settings.gradient_clip)
         self.optimizer.step()
         self.soft_update()
-        return {'loss': loss.item(), 'td_loss': td.item(), 'margin_loss': margin.item()}
+        return {'loss': loss.item(), 'td_loss': td.item(), 'margin_loss': margin.item()}, errors.numpy()

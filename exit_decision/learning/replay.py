@@ -11,6 +11,8 @@ equal share of the terms no CAV owns, summed only while the same vehicle holds t
 the episode's global vector (the paper's shared reward, for the ablation).
 ``ReplayBuffer`` stores them in flat arrays (masks and adjacency bit-packed) and samples
 batches; demonstrations live in their own buffer that is never overwritten.
+``PrioritizedSampler`` draws a buffer's indices in proportion to their priorities
+(paper 003's prioritized replay); otherwise indices are drawn uniformly.
 """
 from __future__ import annotations
 
@@ -135,7 +137,8 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, transition: Transition) -> None:
+    def add(self, transition: Transition) -> int:
+        """Store a transition (over the oldest when full); returns its index."""
         i = self._next
         self.features[i], self.next_features[i] = transition.features, transition.next_features
         self.adjacency[i] = np.packbits(transition.adjacency.astype(bool), axis=-1)
@@ -148,6 +151,7 @@ class ReplayBuffer:
         self.alive[i] = transition.alive
         self._next = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+        return i
 
     def sample(self, indices: np.ndarray) -> dict[str, np.ndarray]:
         n, a = self.num_nodes, self.num_actions
@@ -162,3 +166,36 @@ class ReplayBuffer:
             'discounts': self.discounts[indices],
             'alive': self.alive[indices],
         }
+
+
+class PrioritizedSampler:
+    """Proportional prioritized replay (Schaul et al. 2016): index i is drawn with probability
+    P(i) = p_i^alpha / sum_k p_k^alpha, and its loss weighted by w_i = (n P(i))^-beta / max_k w_k
+    (n stored transitions; the max over the buffer, so weights are at most 1). A new transition
+    gets the largest priority seen so far; after an update its priority is |TD error| + epsilon."""
+
+    def __init__(self, capacity: int, alpha: float, beta: float, epsilon: float = 1e-3):
+        self.alpha, self.beta, self.epsilon = alpha, beta, epsilon
+        self.priorities = np.zeros(capacity, np.float64)   # p_i^alpha
+        self.size = 0
+        self.max_priority = 1.0
+
+    def added(self, index: int) -> None:
+        self.priorities[index] = self.max_priority ** self.alpha
+        self.size = max(self.size, index + 1)
+
+    def probabilities(self) -> np.ndarray:
+        scaled = self.priorities[:self.size]
+        return scaled / scaled.sum()
+
+    def sample(self, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(indices, importance weights) of ``count`` draws."""
+        probabilities = self.probabilities()
+        indices = rng.choice(self.size, size=count, p=probabilities)
+        weights = (self.size * probabilities[indices]) ** -self.beta
+        return indices, (weights / (self.size * probabilities.min()) ** -self.beta).astype(np.float32)
+
+    def update(self, indices: np.ndarray, errors: np.ndarray) -> None:
+        priorities = np.abs(errors) + self.epsilon
+        self.priorities[indices] = priorities ** self.alpha
+        self.max_priority = max(self.max_priority, float(priorities.max()))

@@ -1,4 +1,8 @@
-"""Training of GQN / MDGQN (SPEC section 4), per mode or one mode-conditioned network.
+"""Training of every learned method (SPEC sections 4 and 7), per mode or one mode-conditioned network.
+
+A method (``config/training.yaml`` ``methods``: GQN, MDGQN and the other papers' baselines)
+is a state encoder (``exit_decision.encoders``), a network shape and a loss (single or
+double target, m steps, uniform or prioritized replay); this one loop trains them all.
 
 The loop, per decision: Q values of the graph (one forward for all rows), then each CAV
 chooses under the shield, front to back: epsilon-greedy, the random action biased towards
@@ -41,9 +45,11 @@ from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
-from exit_decision.learning.agent import Algorithm, GraphQAgent, UpdateSettings
+from exit_decision.encoders import StateEncoder
+from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.networks import NetworkShape
-from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
+from exit_decision.learning.replay import (NO_ACTION, DecisionRecord, EpisodeAccumulator, PrioritizedSampler,
+                                           ReplayBuffer, scored_rewards)
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint
 from exit_decision.policy import git_revision, greedy_decision, load_policy, q_values, save_policy
 from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input, weights_of_input
@@ -84,12 +90,14 @@ class WeightSampler:
 
 
 class Trainer:
-    def __init__(self, config: ProjectConfig, algorithm: Algorithm, mode: str, seed: int, out_dir: Path):
+    def __init__(self, config: ProjectConfig, algorithm: str, mode: str, seed: int, out_dir: Path):
+        """``algorithm``: a method of the training config (gqn, mdgqn, dqn, ...)."""
         # Small networks: one thread is as fast as two here, and two threads collapse (80x
         # slower, measured) as soon as anything else runs on the other core.
         torch.set_num_threads(1)
         self.config, self.algorithm, self.mode, self.seed = config, algorithm, mode, seed
-        self.training = t = config.training
+        self.method = method = config.training.method(algorithm)
+        self.training = t = config.training.of_method(algorithm)
         self.out_dir = out_dir
         self.conditioned = mode == CONDITIONED
         if self.conditioned and config.reward(config.env.reward_variant).kind != 'matrix':
@@ -98,18 +106,27 @@ class Trainer:
         if not self.conditioned:
             config.mode(mode)   # an unknown mode fails here, naming the known ones
         self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
-        self.env = ExitDecisionEnv(config, mode=self.validation_modes[0])
+        # SGRL trains one CAV at a time (the others drive as humans); validation runs every CAV
+        self.env = ExitDecisionEnv(config, mode=self.validation_modes[0], single_agent=method.single_agent)
         self.grid, self.shield = self.env.actions, self.env.shield
         self.rng = np.random.default_rng(seed)
         self.sampler = WeightSampler(config, list(c.modes), c.exact_share, c.concentration, self.rng) \
             if self.conditioned else None
-        self.shape = NetworkShape(self.env.graph_builder.num_features, self.grid.size, t.network.encoder,
-                                  t.network.gcn, t.network.head, WEIGHT_INPUT_SIZE if self.conditioned else 0)
+        n, scenario = config.graph.max_vehicles, config.scenario
+        self.encoder_settings = {'name': method.encoder, 'graph_features': self.env.graph_builder.num_features,
+                                 'lane_count': scenario.road.lane_count,
+                                 'speed_limit': scenario.road.highway_speed_limit}
+        self.encoder = StateEncoder(**self.encoder_settings)
+        net = method.network
+        self.shape = NetworkShape(self.encoder.num_features, self.grid.size, tuple(net.encoder), net.gcn,
+                                  tuple(net.head), WEIGHT_INPUT_SIZE if self.conditioned else 0, net.dueling,
+                                  net.adjacency_input, n if net.adjacency_input else 0)
         self.agent = GraphQAgent(self.shape, UpdateSettings(
-            algorithm, t.learning_rate, t.tau, t.demonstrations.margin, t.gradient_clip), seed)
-        self.multi_step = t.algorithms[algorithm].multi_step
-        n = config.graph.max_vehicles
+            method.double, t.learning_rate, t.tau, t.demonstrations.margin, t.gradient_clip), seed)
+        self.multi_step = method.multi_step
         self.replay = ReplayBuffer(t.replay_size, n, self.shape.num_features, self.grid.size)
+        self.priorities = PrioritizedSampler(t.replay_size, method.prioritized.alpha, method.prioritized.beta) \
+            if method.prioritized else None
         self.demos = ReplayBuffer(max(1, 250 * t.demonstrations.episodes), n, self.shape.num_features,
                                   self.grid.size)
         self.demonstrator = RuleBasedDriver.for_env(self.env)
@@ -161,16 +178,17 @@ class Trainer:
         weights = None if demonstrate else self.episode_weights()
         while True:
             graph, snapshot = env.graph, env.sim.snapshot
+            observed = self.encoder.encode(graph, snapshot)
             if demonstrate:
                 decision = self.demonstrator.decide(graph, snapshot.vehicles)
             else:
-                q = q_values(self.agent.online, graph, weights)
+                q = q_values(self.agent.online, observed, weights)
                 decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (
                     self.explore(mask) if self.rng.random() < epsilon else None), planner=env.planner)
             actions, masks = self.decision_arrays(graph, decision)
             _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, keep))
             own, shared = info['reward_vector']
-            emitted = accumulator.add(DecisionRecord(graph, actions, masks, own, shared))
+            emitted = accumulator.add(DecisionRecord(observed, actions, masks, own, shared))
             if terminated or truncated:
                 emitted += accumulator.finish(self.final_record(), terminated)
             transitions += emitted
@@ -199,21 +217,29 @@ class Trainer:
                 vehicle = snapshot.by_id[vehicle_id]
                 mask = self.shield.mask(vehicle, snapshot)
                 masks[row] = planner.restrict(vehicle, mask) if planner is not None else mask
-        return DecisionRecord(graph, np.full(graph.num_nodes, NO_ACTION, np.int64), masks)
+        return DecisionRecord(self.encoder.encode(graph, snapshot), np.full(graph.num_nodes, NO_ACTION, np.int64),
+                              masks)
 
     # --- learning ---------------------------------------------------------------------------
 
-    def sample(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    def sample(self) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray | None, np.ndarray]:
         """A batch from the agent's replay and the demonstrations, each transition scored
-        under mode weights (the run's mode, or drawn per transition when conditioned)."""
+        under mode weights (the run's mode, or drawn per transition when conditioned):
+        (arrays, is demonstration, importance weights or None, the replay indices drawn)."""
         t = self.training
         demo_count = 0
         if len(self.demos):
             demo_count = round(t.batch_size * t.demonstrations.batch_share) if len(self.replay) else t.batch_size
         own_count = t.batch_size - demo_count
         parts, is_demo = [], []
+        indices, importance = np.zeros(0, np.int64), np.ones(demo_count, np.float32)
         if own_count:
-            parts.append(self.replay.sample(self.rng.integers(len(self.replay), size=own_count)))
+            if self.priorities is not None:
+                indices, own_importance = self.priorities.sample(own_count, self.rng)
+                importance = np.concatenate([own_importance, importance])
+            else:
+                indices = self.rng.integers(len(self.replay), size=own_count)
+            parts.append(self.replay.sample(indices))
             is_demo.append(np.zeros(own_count, bool))
         if demo_count:
             parts.append(self.demos.sample(self.rng.integers(len(self.demos), size=demo_count)))
@@ -228,33 +254,36 @@ class Trainer:
             multipliers = np.broadcast_to(self.env.mode_weights, (size, 4, 2))
         batch['rewards'] = scored_rewards(batch, multipliers, t.credit) * np.float32(t.reward_scale)
         del batch['returns'], batch['global_returns']
-        return batch, np.concatenate(is_demo)
+        return batch, np.concatenate(is_demo), importance if self.priorities is not None else None, indices
+
+    def learn_step(self) -> dict[str, float]:
+        """One gradient update on a sampled batch; prioritized replay learns the new priorities."""
+        batch, demo, importance, indices = self.sample()
+        losses, errors = self.agent.update(batch, demo, self.margin_weight(), importance)
+        if self.priorities is not None and len(indices):
+            self.priorities.update(indices, errors[:len(indices)])
+        self.state.updates += 1
+        return losses
 
     def train_steps(self, count: int) -> list[dict[str, float]]:
         if len(self.replay) < self.training.warmup_decisions:
             return []
-        out = []
-        for _ in range(count):
-            batch, demo = self.sample()
-            out.append(self.agent.update(batch, demo, self.margin_weight()))
-            self.state.updates += 1
-        return out
+        return [self.learn_step() for _ in range(count)]
 
     def pretrain(self) -> None:
         """DQfD's pre-training: updates on demonstrations alone."""
         d = self.training.demonstrations
         for _ in tqdm(range(d.pretrain_updates), desc='pre-training on demonstrations', unit='upd',
                       leave=False):
-            batch, demo = self.sample()
-            self.agent.update(batch, demo, self.margin_weight())
-            self.state.updates += 1
+            self.learn_step()
 
     # --- validation and files -----------------------------------------------------------------
 
     def metadata(self) -> dict:
         c = self.config
         return {
-            'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed,
+            'algorithm': self.algorithm, 'paper': self.method.paper, 'encoder': self.encoder_settings,
+            'mode': self.mode, 'seed': self.seed,
             'conditioned': self.conditioned, 'modes': self.validation_modes,
             'reward_variant': c.env.reward_variant, 'feature_set': c.graph.feature_set,
             'num_nodes': c.graph.max_vehicles, 'num_features': self.shape.num_features,
@@ -381,7 +410,9 @@ class Trainer:
 
         def learn(transitions: list) -> None:
             for transition in transitions:
-                self.replay.add(transition)
+                index = self.replay.add(transition)
+                if self.priorities is not None:
+                    self.priorities.added(index)
             self.state.decisions += 1
             losses.extend(self.train_steps(self.training.updates_per_decision))
         self.collect_episode(self.seed * EPISODE_SEED_STRIDE + self.state.episode, demonstrate=False,
@@ -413,7 +444,11 @@ class Validator:
 
     def submit(self, path: Path) -> None:
         if self.pool is None:
-            self.pending.append((path, validate_checkpoint(self.task, path, self.env)))
+            single, self.env.sim.single_agent = self.env.sim.single_agent, False   # validated driving every CAV
+            try:
+                self.pending.append((path, validate_checkpoint(self.task, path, self.env)))
+            finally:
+                self.env.sim.single_agent = single
         else:
             self.pending.append((path, self.pool.submit(validate_checkpoint, self.task, path)))
 

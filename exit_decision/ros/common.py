@@ -2,17 +2,21 @@
 
 QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
 - vehicle_states, traffic_graph, cav_commands: reliable (in synchronous mode every message
-  of a step matters: a lost command stalls the bridge until its timeout), keep last 100 on
-  both sides. A publisher's 100 is its resend history: a reader that falls behind (a
-  recorder sharing 2 cores with training: with 10 it lost 30% of the states) catches up
-  without losses. A node's 100 is 10 s of simulation at real time: it absorbs a stall (the
-  decision node's first policy call) without losses, yet a queue stays short enough that
-  what a node takes from it is still useful: keep-last drops the *oldest*, and a node that
-  is permanently slower than the messages coming in (a flood) would, with a deeper queue,
-  only answer later (tried: 1000 made answers arrive after the bridge's 1 s timeout and
-  lost as many). What keeps a node ahead of a flood is that it rejects what cannot follow
-  its episode and step before converting it. Messages lost anyway are counted
-  (``dropped_<topic>``, from the publisher's sequence numbers, while a topic has one
+  of a step matters: a lost command stalls the bridge until its timeout), keep last 1000 on
+  both sides in the stack's nodes (``STATES_QOS``, ``GRAPH_QOS``, ``COMMANDS_QOS``). A
+  publisher's 1000 is its resend history: a reader that falls behind (a recorder sharing 2
+  cores with training: with 10 it lost 30% of the states) catches up without losses. A
+  node's 1000 absorbs a stall (the decision node's first policy call; a node left without
+  CPU for a while on 2 busy cores, during a flood of 1000 msg/s on its topic) without losing
+  the messages of its own stream among the flood. A deep queue does not make answers late
+  because a node empties its stream queues at once (``take_waiting``, no executor pass per
+  message) and refuses what cannot follow its episode and step from the message's header,
+  before decoding it: some 10 us a refused message. Before that, rclpy's executor (0.35 ms
+  a message) and its throttled logging (0.37 ms a rejected message) made a node slower than
+  a flood of 1000 msg/s, and keep-last, at any depth, dropped or delayed the states and
+  commands of the decision steps (56-85 command timeouts an episode). Observers (the
+  launcher, the visualizer, tests) take ``STREAM_QOS``, depth 100. Messages lost anyway are
+  counted (``dropped_<topic>``, from the publisher's sequence numbers, while a topic has one
   publisher: rclpy does not say which of several publishers a message came from), and the
   steps missing between two a node took as ``skipped_*``.
 - the recorder subscribes with depth 1000: it must keep everything, and writing is cheap.
@@ -28,7 +32,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 # DDS stays on this machine unless the user chose otherwise: the one place that sets it, before
@@ -58,10 +62,12 @@ EPISODE_TOPIC = '/exit_decision/episode_events'
 CLOCK_TOPIC = '/clock'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 MARKERS_TOPIC = '/exit_decision/markers'
+OVERRIDES_TOPIC = '/exit_decision/shield_overrides'
 
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
-#: what the nodes subscribe to states, graph and commands with: the publishers' choice (see above)
-STATES_QOS = GRAPH_QOS = COMMANDS_QOS = STREAM_QOS
+#: what the stack's nodes publish and subscribe states, graph and commands with (see above)
+STATES_QOS = GRAPH_QOS = COMMANDS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                                                   history=HistoryPolicy.KEEP_LAST, depth=1000)
 DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10)
 RECORDER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
 EVENT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=50,
@@ -139,12 +145,16 @@ def declare_config(node: Node) -> ProjectConfig:
     return load_project(Path(value) if value else default_config_dir())
 
 
+REJECT_LOG_PERIOD = 5.0   # [s] a node logs a rejected message of one kind at most this often
+
+
 class Diagnostics:
     """Counters a node publishes on /diagnostics once a second (and on demand)."""
 
     def __init__(self, node: Node, name: str):
         self.node, self.name = node, name
         self.counters: dict[str, float] = {}
+        self.quiet_until: dict[str, float] = {}   # per rejected key: no log line before this (monotonic) time
         self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         # once a wall-clock second, also under use_sim_time (stamped with the node's clock)
         node.create_timer(1.0, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -153,14 +163,20 @@ class Diagnostics:
         self.counters[key] = self.counters.get(key, 0) + amount
 
     def reject(self, key: str, what: str, reason: str) -> None:
-        """Count a rejected message under ``rejected_<key>`` and say why (throttled)."""
+        """Count a rejected message under ``rejected_<key>`` and say why, at most once every
+        REJECT_LOG_PERIOD seconds per key (throttled here: rclpy's throttle inspects the caller's
+        frame on every call, 0.37 ms, which made a flood of rejects cost more than the messages)."""
         self.count(f'rejected_{key}')
-        self.node.get_logger().warning(f'rejected {what}: {reason}', throttle_duration_sec=5.0)
+        now = time.monotonic()
+        if now >= self.quiet_until.get(key, 0.0):
+            self.quiet_until[key] = now + REJECT_LOG_PERIOD
+            self.node.get_logger().warning(f'rejected {what}: {reason}')
 
-    def subscribe(self, msg_type, topic: str, callback: Callable, qos: QoSProfile):
+    def subscribe(self, msg_type, topic: str, callback: Callable, qos: QoSProfile, raw: bool = False):
         """``node.create_subscription`` that also counts messages lost before the node took
         them (``dropped_<topic>``): gaps in the publisher's sequence numbers, counted while
-        the topic has one publisher (with several, rclpy does not say whose a message is)."""
+        the topic has one publisher (with several, rclpy does not say whose a message is).
+        ``raw``: the callback gets the serialized message (to decode only the ones it uses)."""
         key = f'dropped_{topic.rsplit("/", 1)[-1]}'
         last: dict[str, int] = {}
         subscription = None
@@ -175,7 +191,7 @@ class Diagnostics:
             else:
                 last.clear()
             callback(msg)
-        subscription = self.node.create_subscription(msg_type, topic, on_message, qos)
+        subscription = self.node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
         return subscription
 
     def publish(self) -> None:
@@ -187,6 +203,22 @@ class Diagnostics:
         message = DiagnosticArray(status=[status])
         message.header.stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(message)
+
+
+def take_waiting(subscription) -> int:
+    """Hand every message waiting in the queue of ``subscription`` (made by
+    ``Diagnostics.subscribe``) to its callback now, without the executor, and say how many.
+
+    rclpy's executor builds its wait set again for every single message (0.35 ms here): a node
+    that looks for one message among a flood on its topic (the bridge for the commands it waits
+    on) falls behind the flood, and keep-last then drops the very message it waits for, however
+    deep the queue. Taken this way a message costs its decoding and the check that refuses it."""
+    taken = 0
+    with subscription.handle:
+        while (message := subscription.handle.take_message(subscription.msg_type, subscription.raw)) is not None:
+            subscription.callback(*message)   # Diagnostics.subscribe's callback takes (message, info)
+            taken += 1
+    return taken
 
 
 class ProbeNode:
@@ -239,13 +271,17 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def spin(node: Node) -> None:
+def spin(node: Node, drained: Sequence = ()) -> None:
     """``rclpy.spin`` that wakes at least twice a second, so Ctrl-C or SIGTERM stops the node even
-    when nothing else would wake it (under use_sim_time with no /clock no timer ever fires)."""
+    when nothing else would wake it (under use_sim_time with no /clock no timer ever fires).
+    After each callback the executor runs, the queues of the ``drained`` subscriptions are
+    emptied in their order (``take_waiting``): a node's streams, the episode events first."""
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     while node.context.ok():
         executor.spin_once(timeout_sec=0.5)
+        for subscription in drained:
+            take_waiting(subscription)
 
 
 def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], None] | None = None) -> int:

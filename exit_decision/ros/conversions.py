@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import array
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, EpisodeEvent,
-                                    TrafficGraph as GraphMsg, VehicleState as VehicleStateMsg, VehicleStateArray)
+from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, EpisodeEvent, ShieldOverride as
+                                    ShieldOverrideMsg, ShieldOverrideArray, TrafficGraph as GraphMsg,
+                                    VehicleState as VehicleStateMsg, VehicleStateArray)
 
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
 from exit_decision.input_checks import InputError, StateLimits
+from exit_decision.shield_overrides import ShieldOverride
 
 CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
 CLASS_NAMES = {code: name for name, code in CLASS_CODES.items()}
@@ -46,7 +48,8 @@ def vehicle_to_msg(vehicle: VehicleState) -> VehicleStateMsg:
         route_target=vehicle.route_target, controlled=vehicle.controlled)
 
 
-def vehicle_from_msg(msg: VehicleStateMsg) -> VehicleState:
+def vehicle_from_msg(msg: VehicleStateMsg, highway_edges: Collection[str]) -> VehicleState:
+    """``highway_edges``: the road's highway sections (``RoadConfig.names``); any other edge is a ramp."""
     if msg.vehicle_class not in CLASS_NAMES:
         raise MessageError(f'vehicle {msg.vehicle_id!r}: vehicle_class {msg.vehicle_class} is not a known class')
     for name in ('position', 'lateral_offset', 'speed', 'acceleration', 'length', 'lane_speed_limit'):
@@ -58,7 +61,8 @@ def vehicle_from_msg(msg: VehicleStateMsg) -> VehicleState:
         vehicle_id=msg.vehicle_id, vehicle_class=CLASS_NAMES[msg.vehicle_class], lane_index=msg.lane_index,
         edge_id=msg.edge_id, position=msg.position, lateral_offset=msg.lateral_offset, speed=msg.speed,
         acceleration=msg.acceleration, length=msg.length, lane_speed_limit=msg.lane_speed_limit,
-        intention=msg.intention, route_target=msg.route_target, controlled=msg.controlled)
+        intention=msg.intention, route_target=msg.route_target, controlled=msg.controlled,
+        on_highway=msg.edge_id in highway_edges)
 
 
 def states_to_msg(vehicles: Sequence[VehicleState], *, episode: int, step: int, step_length: float,
@@ -70,8 +74,8 @@ def states_to_msg(vehicles: Sequence[VehicleState], *, episode: int, step: int, 
     return msg
 
 
-def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
-    vehicles = [vehicle_from_msg(v) for v in msg.vehicles]
+def states_from_msg(msg: VehicleStateArray, highway_edges: Collection[str]) -> list[VehicleState]:
+    vehicles = [vehicle_from_msg(v, highway_edges) for v in msg.vehicles]
     if len({v.vehicle_id for v in vehicles}) != len(vehicles):
         raise MessageError('vehicles: a vehicle_id appears twice')
     return vehicles
@@ -80,7 +84,7 @@ def states_from_msg(msg: VehicleStateArray) -> list[VehicleState]:
 def checked_states(msg: VehicleStateArray, limits: StateLimits) -> list[VehicleState]:
     """The vehicles of a states message, every field checked against the scenario (InputError
     naming the first that does not fit): what the graph builder and the decision node take."""
-    vehicles = states_from_msg(msg)
+    vehicles = states_from_msg(msg, limits.highway_edges)
     limits.check(vehicles, step=msg.step, step_length=msg.step_length)
     return vehicles
 
@@ -141,15 +145,38 @@ def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: i
     return msg
 
 
+def _by_vehicle(entries, what: str, accelerations: Callable, decode: Callable) -> dict:
+    """Entries of a per-vehicle list by vehicle id: each vehicle once, every acceleration finite."""
+    out = {}
+    for entry in entries:
+        if entry.vehicle_id in out:
+            raise MessageError(f'{what}: {entry.vehicle_id!r} is listed twice')
+        if not all(math.isfinite(value) for value in accelerations(entry)):
+            raise MessageError(f'{what}: {entry.vehicle_id!r} acceleration is not finite')
+        out[entry.vehicle_id] = decode(entry)
+    return out
+
+
 def commands_from_msg(msg: CavCommandArray) -> dict[str, CavCommand]:
-    commands = {}
-    for command in msg.commands:
-        if command.vehicle_id in commands:
-            raise MessageError(f'commands: {command.vehicle_id!r} has two commands')
-        if not math.isfinite(command.acceleration):
-            raise MessageError(f'commands: {command.vehicle_id!r} acceleration is not finite')
-        commands[command.vehicle_id] = CavCommand(int(command.lane_change), float(command.acceleration))
-    return commands
+    return _by_vehicle(msg.commands, 'commands', lambda c: (c.acceleration,),
+                       lambda c: CavCommand(int(c.lane_change), float(c.acceleration)))
+
+
+def overrides_to_msg(overrides: Mapping[str, ShieldOverride], *, episode: int, step: int,
+                     stamp: Time) -> ShieldOverrideArray:
+    msg = ShieldOverrideArray(episode=episode, step=step, overrides=[
+        ShieldOverrideMsg(vehicle_id=vid, preferred_lane_change=o.preferred.lane_change,
+                          preferred_acceleration=o.preferred.acceleration, applied_lane_change=o.applied.lane_change,
+                          applied_acceleration=o.applied.acceleration) for vid, o in overrides.items()])
+    msg.header.stamp = stamp
+    msg.header.frame_id = 'road'
+    return msg
+
+
+def overrides_from_msg(msg: ShieldOverrideArray) -> dict[str, ShieldOverride]:
+    return _by_vehicle(msg.overrides, 'shield overrides', lambda o: (o.preferred_acceleration, o.applied_acceleration),
+                       lambda o: ShieldOverride(CavCommand(int(o.preferred_lane_change), float(o.preferred_acceleration)),
+                                                CavCommand(int(o.applied_lane_change), float(o.applied_acceleration))))
 
 
 def episode_event_to_msg(event: int, *, episode: int, seed: int, steps: int, time: float,

@@ -1,6 +1,7 @@
 """decision_node: the trained policy of the active mode drives every CAV.
 
-At start it loads, for each name of parameter ``algorithms``: ``<algorithm>_conditioned``
+At start it loads, for each name of parameter ``algorithms`` (any learned method of
+config/training.yaml: its checkpoint carries its state encoder): ``<algorithm>_conditioned``
 is one mode-conditioned checkpoint (``policy_dir/<algorithm>_conditioned/policy.pt``) that
 serves every mode of the config and any ``reward_weights``; a plain ``<algorithm>`` is one
 checkpoint per mode of parameter ``modes`` (``policy_dir/<algorithm>_<mode>/policy.pt``). A
@@ -18,7 +19,8 @@ under the same shield as training and evaluation, and publishes the commands sta
 mode, algorithm and policy file. ``mode`` and ``algorithm`` switch at runtime through the
 standard parameter service: a value without a loaded policy is refused with the reason; an
 accepted one is used from the next graph. Diagnostics count decisions, shield overrides of
-the network's first choice, and rejected messages.
+the network's first choice, and rejected messages; the
+CAVs overridden at a decision are published on /exit_decision/shield_overrides.
 
 A graph or a states message is taken only if it can follow the current episode and step
 (the sequence starts afresh on the bridge's or the player's EVENT_STARTED, and only then)
@@ -32,10 +34,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, TrafficGraph as GraphMsg, VehicleStateArray
+from exit_decision_msgs.msg import (CavCommandArray, EpisodeEvent, ShieldOverrideArray, TrafficGraph as GraphMsg,
+                                    VehicleStateArray)
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
@@ -44,11 +48,13 @@ from exit_decision.graph import FEATURE_SETS, TrafficGraph
 from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
-                                      STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config, describe,
-                                      run_node)
-from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg
+                                      OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
+                                      describe, run_node, spin, take_waiting)
+from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
+from exit_decision.step_gaps import episode_and_step
 
 if TYPE_CHECKING:
     from exit_decision.policy import PolicyController
@@ -73,7 +79,7 @@ class DecisionNode(Node):
         policy_dir = Path(p('policy_dir', '', describe(
             'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies', read_only=True))
             or default_policy_dir())
-        modes = list(p('modes', ['AGGI', 'AGGP', 'CONI', 'CONP'], describe(
+        modes = list(p('modes', config.mode_matrix.modes, describe(
             'modes whose policies are loaded at start', read_only=True)))
         algorithms = list(p('algorithms', list(ALGORITHMS), describe(
             'algorithms whose policies are loaded at start', read_only=True)))
@@ -108,7 +114,8 @@ class DecisionNode(Node):
             self.mode = self.mode_of(self.reward_weights)
             self.set_parameters([Parameter('mode', Parameter.Type.STRING, self.mode)])
         self.algorithm = p('algorithm', algorithms[-1], describe(
-            'gqn, mdgqn (per-mode policies) or mdgqn_conditioned', constraints=' | '.join(algorithms)))
+            'a learned method of config/training.yaml (gqn, mdgqn, dqn, ..., per-mode policies) or '
+            '<method>_conditioned; one of parameter algorithms', constraints=' | '.join(algorithms)))
         problem = self.problem({})
         if problem:
             raise PolicyError(problem)
@@ -128,6 +135,7 @@ class DecisionNode(Node):
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.policy_dir, self.modes = policy_dir, modes
         self.loaded: tuple | Exception | None = None   # what the loading thread hands over
+        self.drained: list = []   # the subscriptions whose queues are emptied at once (common.spin), once subscribed
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
         threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
 
@@ -141,6 +149,7 @@ class DecisionNode(Node):
 
             from exit_decision.agents.lane_planner import LanePlanner
             from exit_decision.policy import load_policy
+            from exit_decision.traffic import TrafficSnapshot
             torch.set_num_threads(1)   # per thread: the warm-up as the decisions will run
             config = self.config
             n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
@@ -156,7 +165,7 @@ class DecisionNode(Node):
                     raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
                                       f'as algorithm {algorithm!r} needs')
                 weights = weight_input(config.mode(self.modes[0])) if conditioned else None
-                policy.q_values(idle, weights)   # the first forward pass is slow: not on the first decision
+                policy.q_values(idle, TrafficSnapshot([]), weights)   # the first forward pass is slow: not on the first decision
                 policies[(algorithm, mode)] = (policy, weights)
             self.loaded = (policies, LanePlanner.of(config, self.shield))
         except Exception as error:  # noqa: BLE001 (handed to the executor's thread, which stops the node with it)
@@ -175,11 +184,14 @@ class DecisionNode(Node):
                             for key, (policy, weights) in policies.items()}
         self.destroy_guard_condition(self.loaded_signal)
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
+        self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         # events first: when an episode's start and its first messages are both waiting, the
         # executor takes the subscription created first
-        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
-        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS)
+        self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        self.drained[:] = [self.events,
+                           self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS),
+                           self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS,
+                                                      raw=True)]
         self.get_logger().info(f'loaded {len(self.controllers)} policies from {self.policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
@@ -268,13 +280,18 @@ class DecisionNode(Node):
             self.states.clear()
             self.last_decided = (msg.episode, -1)
 
-    def on_states(self, msg: VehicleStateArray) -> None:
-        if msg.step % self.interval:
+    def on_states(self, raw: bytes) -> None:
+        # read (episode, step) first: other steps, and whatever cannot follow (a flood), cost no decoding
+        episode, step = episode_and_step(raw)
+        if step % self.interval:
             return                                  # only decision steps are used
-        reason = self.states_gate.refuse(msg.episode, msg.step)
+        if episode != self.states_gate.episode:
+            take_waiting(self.events)   # its EVENT_STARTED came first (the bridge waits for it to be acknowledged)
+        reason = self.states_gate.refuse(episode, step)
         if reason:
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
+        msg = deserialize_message(raw, VehicleStateArray)
         try:
             vehicles = checked_states(msg, self.limits)
         except InputError as error:
@@ -287,6 +304,8 @@ class DecisionNode(Node):
     def on_graph(self, msg: GraphMsg) -> None:
         if msg.step % self.interval:
             return
+        if msg.episode != self.graph_gate.episode:
+            take_waiting(self.events)
         reason = self.graph_gate.refuse(msg.episode, msg.step)
         if reason:
             self.diagnostics.reject('out_of_sequence_graphs', 'graph', reason)
@@ -321,6 +340,9 @@ class DecisionNode(Node):
                                                policy=str(controller.policy.path)))
         self.diagnostics.count('decisions', len(commands))
         self.diagnostics.count('shield_overrides', decision.overridden)
+        overrides = shield_overrides(decision, self.grid)
+        if overrides:   # after the commands they belong to
+            self.overrides_publisher.publish(overrides_to_msg(overrides, episode=key[0], step=key[1], stamp=stamp))
 
     def forget_before(self, key: tuple[int, int]) -> None:
         for store in (self.graphs, self.states):
@@ -331,7 +353,8 @@ class DecisionNode(Node):
 
 
 def main() -> int:
-    return run_node('decision_node', DecisionNode)
+    # its streams' queues emptied at once: a flood costs each message a check, not a pass of the executor
+    return run_node('decision_node', DecisionNode, lambda node: spin(node, drained=node.drained))
 
 
 if __name__ == '__main__':

@@ -1,5 +1,10 @@
 """graph_builder: vehicle states in, the traffic graph out, with the training's graph module.
 
+A graph is built and published for the decision steps only (every ``decision_interval``
+steps: the decision node's and the replay's only use; the rest would be work nobody takes).
+The vehicles of every step still hold their slots (rows) as the training's builder, fed every
+step, gives them: on the steps between, only the slots are kept up to date.
+
 Slots are kept per episode: they and the step sequence start afresh on the bridge's (or the
 player's) EVENT_STARTED, and only then. A state message is taken only if it can follow the
 current episode and step and every field fits the scenario (``exit_decision.input_checks``);
@@ -9,13 +14,15 @@ from __future__ import annotations
 
 from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, run_node)
+                                      Diagnostics, declare_config, run_node, spin, take_waiting)
 from exit_decision.ros.conversions import checked_states, graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
+from exit_decision.step_gaps import episode_and_step
 
 
 class GraphBuilderNode(Node):
@@ -27,37 +34,52 @@ class GraphBuilderNode(Node):
         self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)
         self.limits = StateLimits.of(config, geometry)
         self.gate = StepGate(config.scenario.max_steps)
+        self.interval = config.env.decision_interval
         self.feature_set = config.graph.feature_set
         self.diagnostics = Diagnostics(self, 'graph_builder')
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
         # events first: when an episode's start and its first states are both waiting, the
         # executor takes the subscription created first
-        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS)
+        self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        self.states = self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
 
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
             self.gate.start(msg.episode)
             self.builder.reset()
 
-    def on_states(self, msg: VehicleStateArray) -> None:
-        reason = self.gate.refuse(msg.episode, msg.step)
+    def on_states(self, raw: bytes) -> None:
+        # (episode, step) first: a message that cannot follow (a flood) is refused before any decoding
+        episode, step = episode_and_step(raw)
+        if episode != self.gate.episode:
+            take_waiting(self.events)   # its EVENT_STARTED came first (the bridge waits for it to be acknowledged)
+        reason = self.gate.refuse(episode, step)
         if reason:
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
+        msg = deserialize_message(raw, VehicleStateArray)
+        graph = None
         try:
-            graph = self.builder.build(checked_states(msg, self.limits))
+            vehicles = checked_states(msg, self.limits)
+            if msg.step % self.interval:
+                self.builder.slots(vehicles)   # between decisions: the rows only
+            else:
+                graph = self.builder.build(vehicles)
         except (InputError, GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
         self.diagnostics.count('skipped_steps', self.gate.accept(msg.step))
+        if graph is None:
+            return
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=msg.episode,
                                             step=msg.step, stamp=msg.header.stamp))
         self.diagnostics.count('graphs')
 
 
 def main() -> int:
-    return run_node('graph_builder', GraphBuilderNode)
+    # the states queue emptied at once: a flood on the topic costs each message a header read, not a
+    # pass of the executor (take_waiting)
+    return run_node('graph_builder', GraphBuilderNode, lambda node: spin(node, drained=(node.events, node.states)))
 
 
 if __name__ == '__main__':

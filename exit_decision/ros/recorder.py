@@ -11,7 +11,7 @@ a bag opened in Foxglove or RViz shows the scene with no extra step.
 Memory stays flat however long it records: messages go to the file a chunk (1 MB, or a
 second) at a time; what stays in memory per chunk is its index entry (about 100 bytes).
 
-Gaps in the recorded step sequences of states, graphs (every step) and commands (every
+Gaps in the recorded step sequences of states (every step), graphs and commands (every
 decision step) are counted per topic on /diagnostics (``gaps_<topic>``, ``missing_steps_<topic>``)
 and in the summary at close: a node that died and came back leaves such a hole.
 """
@@ -66,7 +66,7 @@ class Recorder(Node):
         self.counts = dict.fromkeys(topics, 0)
         interval = config.env.decision_interval
         self.gaps = {topic: StepGaps(stride) for topic, stride in
-                     ((STATES_TOPIC, 1), (GRAPH_TOPIC, 1), (COMMANDS_TOPIC, interval)) if topic in topics}
+                     ((STATES_TOPIC, 1), (GRAPH_TOPIC, interval), (COMMANDS_TOPIC, interval)) if topic in topics}
         self.diagnostics = Diagnostics(self, 'recorder')
         self.waiting = [topic for topic in topics if not self.subscribe(topic, KNOWN_TOPICS.get(topic))]
         if self.waiting:

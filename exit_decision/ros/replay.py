@@ -68,8 +68,9 @@ class ReplayReport:
 def rebuilt_graphs(config: ProjectConfig, states: Mapping[tuple[int, int], object],
                    wanted: set[tuple[int, int]]) -> dict[tuple[int, int], TrafficGraph]:
     """The graphs of the ``wanted`` steps that the graph builder makes from the recorded states,
-    fed every step of an episode in order (slots are kept per episode). A step it refuses (the
-    node would have published no graph) is left out."""
+    fed every step of an episode in order (slots are kept per episode; on the other steps, as
+    the node between decisions, only the slots). A step it refuses (the node would have
+    published no graph) is left out."""
     road = config.scenario.road
     builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit, road.lane_count)
     graphs, episode = {}, None
@@ -78,11 +79,13 @@ def rebuilt_graphs(config: ProjectConfig, states: Mapping[tuple[int, int], objec
             builder.reset()
             episode = key[0]
         try:
-            graph = builder.build(states_from_msg(states[key]))
+            vehicles = states_from_msg(states[key], road.names.sections)
+            if key in wanted:
+                graphs[key] = builder.build(vehicles)
+            else:
+                builder.slots(vehicles)
         except (GraphInputError, GraphCapacityError):
             continue
-        if key in wanted:
-            graphs[key] = graph
     return graphs
 
 
@@ -126,7 +129,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         controller = controllers[path]
         if controller.policy.conditioned:
             controller.weights = weight_input(config.mode(mode_name))
-        decision = controller.decide(graphs[key], states_from_msg(states[key]))
+        decision = controller.decide(graphs[key], states_from_msg(states[key], config.scenario.road.names.sections))
         report.decisions += 1
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1

@@ -1,11 +1,14 @@
 """``exit-decision show BAG``: a bag's episodes as time-space diagrams and bird's-eye clips.
 
-Reads the vehicle states, the graphs and the commands (with their mode) of a recorded bag
-through ``bags.read_messages``, rebuilds each episode's frames with the same
-``FrameBuilder`` as the visualizer node, and renders them with ``visualization.figures``.
+Reads the vehicle states, the graphs, the commands (with their mode), the shield's overrides
+and the episode events of a recorded bag through ``bags.read_messages``, rebuilds each
+episode's frames with the same ``FrameBuilder`` as the visualizer node, and renders them with
+``visualization.figures``. A bag recorded before the overrides had a topic shows none; one
+without episode events (or cut before an episode's end) has its crashes inferred only.
 """
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,11 +17,12 @@ from tqdm import tqdm
 from exit_decision.config import ProjectConfig
 from exit_decision.errors import UsageError
 from exit_decision.ros.bags import BagError, open_bag, read_messages
-from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import (
     MessageError,
     commands_from_msg,
     graph_from_msg,
+    overrides_from_msg,
     states_from_msg,
 )
 from exit_decision.scenario.geometry import RoadGeometry
@@ -27,7 +31,7 @@ from exit_decision.visualization.figures import TimeSpace, render_episode
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.trace import EpisodeTrace, FrameBuilder
 
-TOPICS = {STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC}
+TOPICS = {STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC, OVERRIDES_TOPIC, EPISODE_TOPIC}
 LONG_BAG = 5000   # messages: a bag this long gets a progress bar (about 5 s of reading)
 
 
@@ -39,10 +43,13 @@ class Shown:
 
     def summary(self) -> str:
         frames = self.trace.frames
-        switches = ', '.join(f'{a} -> {b} at {t:.1f} s' for t, a, b in self.diagram.mode_switches) or 'none'
-        return (f'episode {self.trace.episode}: {len(self.diagram.trajectories)} vehicles, {len(frames)} steps '
-                f'({frames[0].time:.1f}-{frames[-1].time:.1f} s), {self.diagram.collisions} collision(s), '
-                f'{self.diagram.lane_changes} CAV lane-change command(s), mode switches: {switches}\n  '
+        d = self.diagram
+        switches = ', '.join(f'{a} -> {b} at {t:.1f} s' for t, a, b in d.mode_switches) or 'none'
+        counted = '' if self.trace.collisions is None else f' (the bridge counted {self.trace.collisions} collision(s))'
+        return (f'episode {self.trace.episode}: {len(d.trajectories)} vehicles, {len(frames)} steps '
+                f'({frames[0].time:.1f}-{frames[-1].time:.1f} s), {d.collisions} crashed vehicle(s){counted}, '
+                f'{d.lane_changes} CAV lane change(s) ({d.sumo_lane_changes} by SUMO\'s driver), '
+                f'{d.overrides} shield override(s), mode switches: {switches}\n  '
                 + '\n  '.join(str(p) for p in [self.diagram.path, *self.clips]))
 
 
@@ -68,10 +75,11 @@ def on_road(vehicles: list[VehicleState], layout: RoadLayout) -> list[VehicleSta
     return vehicles
 
 
-def read_traces(bag: Path, layout: RoadLayout, episodes: set[int] | None = None,
+def read_traces(bag: Path, layout: RoadLayout, highway_edges: Collection[str], episodes: set[int] | None = None,
                 progress: bool = True) -> dict[int, EpisodeTrace]:
     """The frames of each episode of the bag (of ``episodes`` only, if given); a message that
-    does not fit (or a lane the config's road lacks) is the user's to fix, named in one line."""
+    does not fit (or a lane the config's road lacks) is the user's to fix, named in one line.
+    ``highway_edges``: the config's highway sections (any other edge is a ramp)."""
     total = message_count(bag)
     builders: dict[int, FrameBuilder] = {}
     traces: dict[int, EpisodeTrace] = {}
@@ -87,10 +95,15 @@ def read_traces(bag: Path, layout: RoadLayout, episodes: set[int] | None = None,
                 if builder is None:
                     builder = builders[msg.episode] = FrameBuilder(layout, msg.step_length, msg.episode)
                     traces[msg.episode] = EpisodeTrace(msg.episode, bag.name, msg.step_length)
-                traces[msg.episode].frames.append(builder.add(msg.step, on_road(states_from_msg(msg), layout)))
+                traces[msg.episode].frames.append(builder.add(msg.step, on_road(states_from_msg(msg, highway_edges), layout)))
             elif msg.episode in builders:
                 if topic == COMMANDS_TOPIC:
-                    builders[msg.episode].decide(commands_from_msg(msg), msg.mode)
+                    builders[msg.episode].decide(commands_from_msg(msg), msg.mode, msg.step)
+                elif topic == OVERRIDES_TOPIC:
+                    builders[msg.episode].shield(overrides_from_msg(msg), msg.step)
+                elif topic == EPISODE_TOPIC:
+                    if msg.event == msg.EVENT_ENDED:
+                        traces[msg.episode].collisions = builders[msg.episode].end(msg.p_collision)
                 else:
                     graph = graph_from_msg(msg)
                     builders[msg.episode].graph(graph.vehicle_ids, graph.adjacency)
@@ -112,7 +125,7 @@ def show_bag(bag: Path, config: ProjectConfig, out_dir: Path | None = None, *, e
         raise UsageError(f'--start {start:g} / --end {end:g}: the window is empty (start must be before end)')
     road = config.scenario.road
     layout = RoadLayout.of(RoadGeometry.of(road), road)
-    traces = read_traces(bag, layout, None if episode is None else {episode}, progress)
+    traces = read_traces(bag, layout, road.names.sections, None if episode is None else {episode}, progress)
     out_dir = out_dir or bag.parent / f'{bag.name}_show'
     shown = []
     for number, trace in sorted(traces.items()):

@@ -30,7 +30,8 @@ class StackNode:
 
 
 ARGUMENTS: dict[str, Argument] = {
-    'mode': Argument('AGGI', 'decision mode at start'),
+    'mode': Argument('', "decision mode at start; empty: the decision node's default, the first mode of "
+                         "config/modes.yaml's matrix"),
     'algorithm': Argument('mdgqn_conditioned', 'mdgqn_conditioned (one network, every mode), gqn or mdgqn'),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
     'seed': Argument('10000', 'seed of the first episode', int),

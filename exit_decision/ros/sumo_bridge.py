@@ -29,11 +29,13 @@ from rosgraph_msgs.msg import Clock
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC,
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
-                                      declare_config, describe, follow, run_node)
+                                      declare_config, describe, follow, run_node, take_waiting)
 from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of, states_to_msg
 from exit_decision.scenario.simulation import CommandError
 from exit_decision.traffic import CavCommand
 from exit_decision.input_checks import CommandLimits, InputError
+
+PEER_REPORT_PERIOD = 5.0   # [s] how often a bridge waiting for its peers says what it waits for
 
 
 class SumoBridge(Node):
@@ -58,12 +60,13 @@ class SumoBridge(Node):
                                                   'before the next episode starts', integer_range=(0, 1_000_000)))
         self.seed = p('seed', 10_000, describe('seed of the first episode (then +1 each)', read_only=True,
                                                integer_range=(0, 2**31 - 1)))
-        self.startup_timeout = p('startup_timeout', 30.0, describe(
-            '[s] synchronous policy mode: wait this long at start for a commands publisher and a states '
-            'subscriber', read_only=True, float_range=(0.0, 3600.0)))
+        self.startup_timeout = p('startup_timeout', 0.0, describe(
+            '[s] at start, wait at most this long for the peers (wait_for_subscribers; in synchronous policy '
+            'mode a commands publisher too), then start anyway; 0: wait until they come', read_only=True,
+            float_range=(0.0, 3600.0)))
         self.wait_for_subscribers = p('wait_for_subscribers', 1, describe(
-            'at start, wait (up to startup_timeout) for this many subscribers of the states, e.g. a '
-            'recorder that must not miss the first step', read_only=True, integer_range=(0, 100)))
+            'at start, wait for this many subscribers of the states, e.g. a recorder that must not miss the '
+            'first step', read_only=True, integer_range=(0, 100)))
         follow(self, 'command_timeout', 'realtime_factor', 'episodes')
         cav_driver = p('cav_driver', 'policy', describe(
             'policy: CAVs follow the commands; sumo: SUMO drives them (reference runs)', read_only=True,
@@ -78,7 +81,7 @@ class SumoBridge(Node):
         self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STATES_QOS)
         self.events_pub = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
         self.diagnostics = Diagnostics(self, 'sumo_bridge')
-        self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS)
+        self.commands = self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS)
         self.episode = 0
         self.published_step = -1            # step of the newest published states
         self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
@@ -92,7 +95,13 @@ class SumoBridge(Node):
     # --- commands -----------------------------------------------------------------------------
 
     def on_commands(self, msg: CavCommandArray) -> None:
-        """Accept (checked, clamped) the commands that can answer now; reject the rest whole."""
+        """Accept (checked, clamped) the commands that can answer now; reject the rest whole: a
+        message with a bad field whatever its step, then one that cannot answer now."""
+        try:
+            commands, clamped = self.limits.sanitize(commands_from_msg(msg))
+        except InputError as error:
+            self.diagnostics.reject('command_messages', f'commands of step {msg.step}', str(error))
+            return
         if msg.episode != self.episode:
             reason = f'episode {msg.episode} is not the current episode {self.episode}'
         elif self.timing == 'synchronous':
@@ -104,11 +113,6 @@ class SumoBridge(Node):
                 f'step {msg.step} is not in {self.last_command_step + 1}..{self.published_step}')
         if reason:
             self.diagnostics.reject('stale_commands', 'commands', reason)
-            return
-        try:
-            commands, clamped = self.limits.sanitize(commands_from_msg(msg))
-        except InputError as error:
-            self.diagnostics.reject('command_messages', f'commands of step {msg.step}', str(error))
             return
         if clamped:
             self.diagnostics.count('clamped_commands', clamped)
@@ -139,6 +143,7 @@ class SumoBridge(Node):
         deadline = time.monotonic() + self.command_timeout
         try:
             while rclpy.ok(context=self.context):
+                take_waiting(self.commands)   # the whole queue at once: a flood on the topic cannot bury the answer
                 if self.pending is not None:
                     return self.take_commands()
                 remaining = deadline - time.monotonic()
@@ -176,36 +181,64 @@ class SumoBridge(Node):
         self.env.reset(seed=seed)
         result = self.env.sim.state
         self.pending, self.published_step, self.last_command_step = None, -1, -1
+        # The nodes start their sequence checks on this event. No wait for its acknowledgements:
+        # Fast DDS acknowledges with its periodic heartbeat, so a 1 s wait for them always ran out
+        # (1 s lost at every episode's start). It reaches a node before the states published after
+        # it (in order from this participant), and a node that meets states of an episode it does
+        # not know takes its waiting events first (graph_builder, decision_node); a node that still
+        # misses the first step costs that step's command timeout, as the wait did.
         self.publish_event(EpisodeEvent.EVENT_STARTED, seed, result)
-        # the nodes start their sequence checks on this event: let it arrive before the states
-        self.events_pub.wait_for_all_acked(Duration(seconds=1.0))
         next_tick = time.monotonic()
         while rclpy.ok(context=self.context):
             self.publish_state(result)
             if result.terminated or result.truncated:
                 break
             if self.timing == 'synchronous':
+                # the executor spins (parameter services, late messages) while it waits on a decision
+                # step; a spin on every step would cost each step ~0.35 ms of the 2 cores for nothing
                 commands = self.wait_for_commands(result.step) if result.step % self.interval == 0 else None
-                self.executor_.spin_once(timeout_sec=0.0)   # parameter services, late messages
             else:
                 next_tick += self.step_length / self.realtime_factor
                 while (wait := next_tick - time.monotonic()) > 0:
                     self.executor_.spin_once(timeout_sec=wait)
+                take_waiting(self.commands)
                 commands = self.take_commands()
             result, _ = self.env.simulate_step(commands)
         self.publish_event(EpisodeEvent.EVENT_ENDED, seed, result)
 
+    def missing_peers(self) -> str:
+        """What the bridge still waits for before its first step, in words ('' when nothing).
+        Peers are counted as matched by the middleware, not as seen on the ROS graph: a reliable
+        message to a matched reader arrives (resent until acknowledged), so the first step needs
+        no time to settle after the count."""
+        missing = []
+        listening = self.states_pub.get_subscription_count()
+        if listening < self.wait_for_subscribers:
+            missing.append(f'{self.wait_for_subscribers - listening} more subscriber(s) of {STATES_TOPIC} '
+                           f'({listening} of wait_for_subscribers {self.wait_for_subscribers})')
+        if self.wait_for_decision_node and not self.commands.get_publisher_count():
+            missing.append(f'a publisher of {COMMANDS_TOPIC} (the decision node)')
+        return ' and '.join(missing)
+
     def wait_for_peers_to_listen(self) -> None:
         """Do not step before the subscribers are there (and, in synchronous policy mode,
-        someone who can answer)."""
-        deadline = time.monotonic() + self.startup_timeout
-        while rclpy.ok(context=self.context) and time.monotonic() < deadline:
-            if (self.count_subscribers(STATES_TOPIC) >= self.wait_for_subscribers
-                    and (not self.wait_for_decision_node or self.count_publishers(COMMANDS_TOPIC))):
-                self.executor_.spin_once(timeout_sec=0.5)   # let the reliable connections settle
+        someone who can answer): as long as it takes (a node started alone, as by `ros2 run`,
+        waits for the others), or ``startup_timeout`` seconds if that is set; saying every
+        PEER_REPORT_PERIOD seconds what is missing."""
+        started = report = time.monotonic()
+        while rclpy.ok(context=self.context):
+            missing = self.missing_peers()
+            if not missing:
                 return
+            now = time.monotonic()
+            if self.startup_timeout and now - started >= self.startup_timeout:
+                self.get_logger().warning(f'still waiting for {missing} after startup_timeout '
+                                          f'{self.startup_timeout:g} s: starting anyway')
+                return
+            if now >= report:
+                self.get_logger().info(f'waiting for {missing}')
+                report = now + PEER_REPORT_PERIOD
             self.executor_.spin_once(timeout_sec=0.1)
-        self.get_logger().warning(f'peers missing after {self.startup_timeout} s: starting anyway')
 
     def run(self) -> None:
         self.wait_for_peers_to_listen()

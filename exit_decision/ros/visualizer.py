@@ -1,28 +1,38 @@
 """visualizer: the scene as ``visualization_msgs/MarkerArray`` on /exit_decision/markers (frame ``map``).
 
 Thin glue around ``exit_decision.visualization``: vehicle states, the graph, the commands
-(with their mode) and the decision node's shield-override counter (/diagnostics) go into a
-``FrameBuilder``; ``MarkerScene`` says what to draw and what to delete. At most ``max_rate``
-arrays per wall-clock second (a synchronous stack steps much faster than anyone watches);
-frames in between still count for collisions, and a frame with no vehicles is always sent. Open the topic (or a recorded bag) in RViz or Foxglove with fixed frame ``map``.
+(with their mode), the CAVs the shield overrode, the decision node's shield-override counter
+(/diagnostics) and the bridge's episode events go into a ``FrameBuilder``; ``MarkerScene``
+says what to draw and what to delete. At most ``max_rate`` arrays per wall-clock second (a
+synchronous stack steps much faster than anyone watches): frames in between still count for
+collisions, a frame with no vehicles is always sent, and the newest frame held back is sent
+when the rate allows (so the last one is never lost). At an episode's end the status text
+gets the bridge's collision count. Open the topic (or a recorded bag) in RViz or Foxglove
+with fixed frame ``map``.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray
-from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
+from exit_decision_msgs.msg import (CavCommandArray, EpisodeEvent, ShieldOverrideArray, TrafficGraph,
+                                    VehicleStateArray)
 from geometry_msgs.msg import Point
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
 from exit_decision.ros.common import (
     COMMANDS_TOPIC,
     DIAGNOSTICS_TOPIC,
+    EPISODE_TOPIC,
+    EVENT_QOS,
     GRAPH_TOPIC,
     MARKERS_TOPIC,
+    OVERRIDES_TOPIC,
     STATES_TOPIC,
     STREAM_QOS,
     Diagnostics,
@@ -36,12 +46,13 @@ from exit_decision.ros.conversions import (
     MessageError,
     commands_from_msg,
     graph_from_msg,
+    overrides_from_msg,
     states_from_msg,
 )
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
-from exit_decision.visualization.trace import FrameBuilder
+from exit_decision.visualization.trace import Frame, FrameBuilder
 
 
 def marker_array(specs: Sequence[MarkerSpec], stamp, reuse: dict | None = None) -> MarkerArray:
@@ -79,10 +90,14 @@ class Visualizer(Node):
         follow(self, 'max_rate')
         road = config.scenario.road
         layout = RoadLayout.of(RoadGeometry.of(road), road)
+        self.highway_edges = road.names.sections
         self.frames = FrameBuilder(layout, config.scenario.step_length)
         self.scene = MarkerScene(layout)
         self.overrides: int | None = None
         self.last_sent = -math.inf
+        self.last: tuple[Frame, object] | None = None      # the newest frame and its stamp
+        self.held_back: tuple[Frame, object] | None = None   # ... if the rate limit kept it back
+        self.trailing = None                                # the one-shot timer that sends it
         self.markers: dict = {}   # Marker messages reused frame to frame (marker_array)
         self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
         # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
@@ -90,30 +105,68 @@ class Visualizer(Node):
         self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
         self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
+        self.create_subscription(ShieldOverrideArray, OVERRIDES_TOPIC, self.on_overrides, STREAM_QOS)
+        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, msg: VehicleStateArray) -> None:
         try:
-            vehicles = states_from_msg(msg)
+            vehicles = states_from_msg(msg, self.highway_edges)
         except MessageError as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
         if msg.episode != self.frames.episode:
             self.frames.reset(msg.episode)
         frame = self.frames.add(msg.step, vehicles, overrides=self.overrides)
-        now = time.monotonic()
-        if self.max_rate and now - self.last_sent < 1.0 / self.max_rate and vehicles:
-            self.scene.observe(frame)
+        self.last = frame, msg.header.stamp
+        wait = self.last_sent + 1.0 / self.max_rate - time.monotonic() if self.max_rate and vehicles else 0.0
+        if wait <= 0:
+            self.send(frame, msg.header.stamp)
             return
-        self.last_sent = now
-        self.publisher.publish(marker_array(self.scene.update(frame), msg.header.stamp, self.markers))
+        if self.held_back is not None:
+            self.scene.observe(self.held_back[0])   # replaced unsent: its episode and collisions still count
+        self.held_back = self.last
+        if self.trailing is None:
+            self.trailing = self.create_timer(wait, self.send_held_back, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def send(self, frame: Frame, stamp) -> None:
+        """Publish a frame's markers (after a frame held back before it was taken in)."""
+        if self.held_back is not None and self.held_back[0] is not frame:
+            self.scene.observe(self.held_back[0])
+        self.held_back = None
+        self.last_sent = time.monotonic()
+        self.publisher.publish(marker_array(self.scene.update(frame), stamp, self.markers))
         self.diagnostics.count('marker_arrays')
+
+    def send_held_back(self) -> None:
+        """(Wall-clock one-shot) the newest frame the rate limit kept back, once the rate allows."""
+        self.destroy_timer(self.trailing)
+        self.trailing = None
+        if self.held_back is not None:
+            self.send(*self.held_back)
+
+    def on_episode(self, msg: EpisodeEvent) -> None:
+        """At the end of the shown episode: its last frame again, with the bridge's collision count."""
+        if msg.event != EpisodeEvent.EVENT_ENDED or msg.episode != self.frames.episode or self.last is None:
+            return
+        if self.held_back is not None:
+            self.send(*self.held_back)
+        frame, stamp = self.last
+        self.send(dataclasses.replace(frame, crashed=(), collisions=self.frames.end(msg.p_collision)), stamp)
+
+    def on_overrides(self, msg: ShieldOverrideArray) -> None:
+        if msg.episode != self.frames.episode:
+            return
+        try:
+            self.frames.shield(overrides_from_msg(msg), msg.step)
+        except MessageError as error:
+            self.diagnostics.reject('shield_overrides', f'shield overrides of step {msg.step}', str(error))
 
     def on_commands(self, msg: CavCommandArray) -> None:
         if msg.episode != self.frames.episode:
             return
         try:
-            self.frames.decide(commands_from_msg(msg), msg.mode)
+            self.frames.decide(commands_from_msg(msg), msg.mode, msg.step)
         except MessageError as error:
             self.diagnostics.reject('commands', f'commands of step {msg.step}', str(error))
 

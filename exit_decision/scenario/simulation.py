@@ -8,12 +8,14 @@ Same seed, same commands => same episode.
 Human drivers are SUMO's (IDM + LC2013) plus two rules of ours from SPEC section 1: HV2's
 opportunistic right changes, and exits chosen by the lane held at a diverge. CAVs driven
 by the policy have SUMO's safety checks switched off (speed mode 0, lane-change mode 0), so
-a bad command really collides; ``cav_driver='sumo'`` lets SUMO drive them to Exit_1 instead
-(the rule-based reference). A policy CAV whose exit is decided against its task (it committed
-to Exit_0, or passed Exit_1's diverge outside lane 0) is *released*: SUMO's own driver takes it
+a bad command really collides; ``cav_driver='sumo'`` lets SUMO drive them to the target exit
+instead (the rule-based reference). A policy CAV whose exit is decided against its task (it
+committed to the first exit, or passed the target exit's diverge outside lane 0) is *released*: SUMO's own driver takes it
 to the end of its route with SUMO's safety checks on, it reports ``controlled=False`` and takes
 no more commands (it counts as a miss). Without this a CAV that missed the exit could stand at
 the road's end until the step cap, in states no policy was trained on.
+With ``single_agent`` (paper 001's SGRL training) the policy drives one CAV at a time: a CAV
+that enters while another is under the policy's control is released from its start.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ import sumolib
 
 from exit_decision.config import ScenarioConfig
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.scenario.sumo_inputs import DIVERGES, TASK_EXIT, build_routes
+from exit_decision.scenario.sumo_inputs import build_routes
 from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, Arrival, CavCommand,
                                    Collision, StepResult, TrafficSnapshot, VehicleState)
 
@@ -53,9 +55,10 @@ class HighwaySimulation:
     """One SUMO run of the scenario, restartable with ``reset`` any number of times."""
 
     def __init__(self, scenario: ScenarioConfig, cav_driver: CavDriver = 'policy',
-                 backend: Backend = 'libsumo'):
+                 backend: Backend = 'libsumo', single_agent: bool = False):
         self.scenario = scenario
         self.cav_driver = cav_driver
+        self.single_agent = single_agent
         self.backend = backend
         if backend == 'libsumo':
             import libsumo as sumo
@@ -66,6 +69,10 @@ class HighwaySimulation:
         self.geometry = RoadGeometry.of(scenario.road)
         self._route_file = build_routes(scenario)
         self._lanes = self.geometry.lanes
+        # the edge each class's route ends with: SPEC section 1's roles
+        geometry, last = self.geometry, self.geometry.sections[-1]
+        self._leaves_by = {'HV1': last, 'HV2': last, 'HV3': geometry.first_exit.ramp,
+                           'CAV': geometry.target_exit.ramp if cav_driver == 'sumo' else last}
         self._started = False
 
     # --- set-up -------------------------------------------------------------------------
@@ -194,8 +201,8 @@ class HighwaySimulation:
                 continue
             target = [self._snapshot.neighbours_of(vehicle, lane_offset=-1)]
             if vehicle.lane_index == 1:
-                target += [self._snapshot.neighbours((ramp, 0), vehicle.position, vehicle.length)
-                           for ramp in DIVERGES.values()]
+                target += [self._snapshot.neighbours((exit_.ramp, 0), vehicle.position, vehicle.length)
+                           for exit_ in self.geometry.exits.values()]
             if all(t.leader_gap >= clearance and t.follower_gap >= clearance for t in target):
                 self._sumo.vehicle.changeLane(vehicle.vehicle_id, vehicle.lane_index - 1,
                                               self.scenario.step_length)
@@ -203,21 +210,22 @@ class HighwaySimulation:
     def _route_at_diverges(self) -> None:
         """In the last metres before a diverge, the lane held picks the exit (SPEC section 1)."""
         commit = self.scenario.road.diverge_commit_distance
+        exits, target = self.geometry.exits, self.geometry.target_exit
         for vehicle in self._last.vehicles:
             by_lane = vehicle.controlled or vehicle.vehicle_class == 'HV2'
             if not by_lane or self._committed.get(vehicle.vehicle_id) == vehicle.edge_id:
                 continue
-            if vehicle.edge_id not in DIVERGES or self.geometry.diverge_at[vehicle.edge_id] - vehicle.position > commit:
+            exit_ = exits.get(vehicle.edge_id)
+            if exit_ is None or exit_.diverge_at - vehicle.position > commit:
                 continue
-            if vehicle.vehicle_class == 'HV2' and vehicle.edge_id != 'Highway_1':
+            if vehicle.vehicle_class == 'HV2' and exit_ != target:
                 continue
             self._committed[vehicle.vehicle_id] = vehicle.edge_id
-            ramp = DIVERGES[vehicle.edge_id]
             takes_ramp = vehicle.lane_index == 0
             if takes_ramp:
-                self._sumo.vehicle.setRoute(vehicle.vehicle_id, [vehicle.edge_id, ramp])
-                self._route_target[vehicle.vehicle_id] = ramp
-            if vehicle.controlled and takes_ramp != (ramp == TASK_EXIT):
+                self._sumo.vehicle.setRoute(vehicle.vehicle_id, [vehicle.edge_id, exit_.ramp])
+                self._route_target[vehicle.vehicle_id] = exit_.ramp
+            if vehicle.controlled and takes_ramp != (exit_ == target):
                 self._release(vehicle.vehicle_id)
 
     def _release(self, vehicle_id: str) -> None:
@@ -240,9 +248,7 @@ class HighwaySimulation:
             self._serial[name] += 1
             self._remaining[name] -= 1
             self._drawn += 1
-            leaves_by = {'HV3': 'Exit_0'}.get(name, 'Highway_2')
-            if name == 'CAV' and self.cav_driver == 'sumo':
-                leaves_by = 'Exit_1'
+            leaves_by = self._leaves_by[name]
             self._sumo.vehicle.add(vehicle_id, f'to_{leaves_by}', typeID=name, depart='now',
                                    departLane=str(lane), departPos='base',
                                    departSpeed=str(cls.depart_speed))
@@ -255,7 +261,11 @@ class HighwaySimulation:
         vehicle_api = self._sumo.vehicle
         vehicle_api.subscribe(vehicle_id, self._vars)
         name = self._class_of[vehicle_id]
-        if name == 'CAV' and self.cav_driver == 'policy':
+        if name == 'CAV' and self.cav_driver == 'policy' and self.single_agent and any(
+                v.controlled for v in self._snapshot.vehicles):
+            self._released.add(vehicle_id)                # SGRL: one learner at a time, SUMO drives the rest
+            self._intention[vehicle_id] = INTENTION_KEEP
+        elif name == 'CAV' and self.cav_driver == 'policy':
             vehicle_api.setSpeedMode(vehicle_id, 0)       # SUMO's safety off: the policy is in control
             vehicle_api.setLaneChangeMode(vehicle_id, 0)
             self._held_acceleration[vehicle_id] = 0.0
@@ -275,8 +285,9 @@ class HighwaySimulation:
         collided = {c.collider for c in collisions} | {c.victim for c in collisions}
         for vehicle_id in sim.getArrivedIDList():
             if vehicle_id not in collided:
-                arrivals.append(Arrival(vehicle_id, self._class_of[vehicle_id],
-                                        self._previous_edge(vehicle_id)))
+                exit_edge = self._previous_edge(vehicle_id)
+                arrivals.append(Arrival(vehicle_id, self._class_of[vehicle_id], exit_edge,
+                                        exit_edge == self.geometry.target_exit.ramp))
             self._braking.discard(vehicle_id)
         previous = self._snapshot.by_id
         results = self._sumo.vehicle.getAllSubscriptionResults()
@@ -312,7 +323,7 @@ class HighwaySimulation:
                 lateral_offset=values[lateral], speed=values[speed], acceleration=acceleration,
                 length=self.scenario.vehicle_types[name].length, lane_speed_limit=info.speed_limit,
                 intention=intention, route_target=self._route_target[vehicle_id],
-                controlled=controlled))
+                controlled=controlled, on_highway=info.on_highway))
         self._snapshot = TrafficSnapshot(vehicles)
         total = self.scenario.total_vehicles
         return StepResult(

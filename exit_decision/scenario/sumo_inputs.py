@@ -5,12 +5,14 @@ SUMO's netconvert; vehicle types and routes are written from the scenario config
 cached by a hash of their text, so a scenario variant gets its own files and nothing
 generated is ever edited by hand.
 
-Edges: Highway_0 -> Highway_1 -> Highway_2 (``lane_count`` lanes, lane 0 rightmost);
-Exit_0 leaves lane 0 at the end of Highway_0, Exit_1 lane 0 at the end of Highway_1.
+Edges, named by ``RoadConfig.names``: three highway sections in a row (``lane_count`` lanes,
+lane 0 rightmost); the first exit leaves lane 0 at the end of the first section, the target
+exit lane 0 at the end of the second.
 """
 from __future__ import annotations
 
 import hashlib
+import itertools
 import os
 import shutil
 import subprocess
@@ -19,18 +21,8 @@ from collections.abc import Callable
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-from exit_decision.config import RoadConfig, ScenarioConfig
+from exit_decision.config import RoadConfig, RoadNames, ScenarioConfig
 
-HIGHWAY_EDGES = ('Highway_0', 'Highway_1', 'Highway_2')
-EXIT_EDGES = ('Exit_0', 'Exit_1')
-#: The ramp that leaves lane 0 at the end of each highway edge.
-DIVERGES = {'Highway_0': 'Exit_0', 'Highway_1': 'Exit_1'}
-#: The exit every CAV is sent to (and HV2 may take): the task of the decision problem.
-TASK_EXIT = 'Exit_1'
-#: Route ids in the routes file, by the edge a vehicle leaves the road by.
-ROUTES = {'Highway_2': ('Highway_0', 'Highway_1', 'Highway_2'),
-          'Exit_0': ('Highway_0', 'Exit_0'),
-          'Exit_1': ('Highway_0', 'Highway_1', 'Exit_1')}
 LANE_WIDTH = 3.2   # [m] SUMO's default
 SUMO_CAR_FOLLOWING = {'IDM': 'IDM', 'Krauss': 'Krauss', 'EIDM': 'EIDM'}
 
@@ -55,6 +47,18 @@ def sumo_tool(name: str) -> str:
     return os.path.abspath(found)   # it runs in another working directory
 
 
+def diverges(names: RoadNames) -> dict[str, str]:
+    """The ramp that leaves lane 0 at the end of each highway section that has one."""
+    return {names.sections[0]: names.first_exit, names.sections[1]: names.target_exit}
+
+
+def routes(names: RoadNames) -> dict[str, tuple[str, ...]]:
+    """The edges of each route, by the edge a vehicle leaves the road by (route id ``to_<edge>``)."""
+    first, second, last = names.sections
+    return {last: names.sections, names.first_exit: (first, names.first_exit),
+            names.target_exit: (first, second, names.target_exit)}
+
+
 def network_sources(road: RoadConfig) -> dict[str, str]:
     """Plain XML node, edge and connection files for netconvert."""
     l0, l1, l2 = road.highway_lengths
@@ -68,16 +72,17 @@ def network_sources(road: RoadConfig) -> dict[str, str]:
              ('exit0_end', xs[1] + ramp_dx, ramp_y0 + ramp_dy), ('exit1_end', xs[2] + ramp_dx, ramp_y0 + ramp_dy)]
     highway = dict(numLanes=road.lane_count, speed=road.highway_speed_limit, width=LANE_WIDTH)
     ramp = dict(numLanes=1, speed=road.ramp_speed_limit, length=road.ramp_length, width=LANE_WIDTH)
-    edges = [('Highway_0', 'n0', 'n1', dict(highway, length=l0)),
-             ('Highway_1', 'n1', 'n2', dict(highway, length=l1)),
-             ('Highway_2', 'n2', 'n3', dict(highway, length=l2))]
-    for ramp_id, start_node, end_node, x in (('Exit_0', 'n1', 'exit0_end', xs[1]), ('Exit_1', 'n2', 'exit1_end', xs[2])):
+    sections = road.names.sections
+    edges = [(section, f'n{i}', f'n{i + 1}', dict(highway, length=length))
+             for i, (section, length) in enumerate(zip(sections, road.highway_lengths))]
+    ramps = diverges(road.names)
+    for i, (ramp_id, x) in enumerate(zip(ramps.values(), xs[1:3])):
         shape = f'{x},{ramp_y0} {x + ramp_dx},{ramp_y0 + ramp_dy}'
-        edges.append((ramp_id, start_node, end_node, dict(ramp, shape=shape)))
+        edges.append((ramp_id, f'n{i + 1}', f'exit{i}_end', dict(ramp, shape=shape)))
     connections = []
-    for upstream, downstream in (('Highway_0', 'Highway_1'), ('Highway_1', 'Highway_2')):
+    for upstream, downstream in itertools.pairwise(sections):
         connections += [(upstream, downstream, lane, lane) for lane in range(road.lane_count)]
-        connections.append((upstream, DIVERGES[upstream], 0, 0))
+        connections.append((upstream, ramps[upstream], 0, 0))
     return {
         'nod.xml': '<nodes>\n' + ''.join(
             f'  <node id="{n}" x="{x}" y="{y}" type="priority"/>\n' for n, x, y in nodes) + '</nodes>\n',
@@ -99,7 +104,7 @@ def routes_source(scenario: ScenarioConfig) -> str:
             'speedFactor': vtype.speed_factor, 'speedDev': vtype.speed_dev,
             'lcCooperative': vtype.politeness,
             'carFollowModel': SUMO_CAR_FOLLOWING[vtype.car_following]}) + '/>')
-    for leaves_by, edges in ROUTES.items():
+    for leaves_by, edges in routes(scenario.road.names).items():
         lines.append(f'  <route id="to_{leaves_by}" edges="{" ".join(edges)}"/>')
     lines.append('</routes>')
     return '\n'.join(lines) + '\n'

@@ -1,7 +1,7 @@
 """``evaluate --show N``: the first N episodes of each evaluation run, drawn without ROS.
 
 The evaluation loop hands each episode's steps (exact collisions included), the commands of
-each decision and the shield's overrides to an ``EpisodeRecorder``; at the end of the episode
+each decision and the CAVs the shield overrode to an ``EpisodeRecorder``; at the end of the episode
 it writes the same time-space diagram and bird's-eye clip as ``exit-decision show``.
 """
 from __future__ import annotations
@@ -10,6 +10,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from exit_decision.shield_overrides import ShieldOverride
 from exit_decision.traffic import CavCommand, StepResult
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.trace import EpisodeTrace, FrameBuilder
@@ -47,16 +48,16 @@ class EpisodeRecorder:
         self.trace = EpisodeTrace(0, self.stem, scenario.step_length)
         self.steps([env.sim.state])
 
-    def decide(self, commands: Mapping[str, CavCommand], overridden: int = 0) -> None:
-        self.overrides += overridden
+    def decide(self, commands: Mapping[str, CavCommand], overrides: Mapping[str, ShieldOverride]) -> None:
+        self.overrides += len(overrides)
         self.builder.decide(commands)
+        self.builder.shield(overrides)
 
     def steps(self, results: Iterable[StepResult]) -> None:
         for result in results:
             collided = [vehicle_id for c in result.collisions for vehicle_id in (c.collider, c.victim)]
             self.trace.frames.append(self.builder.add(result.step, result.vehicles, collided, self.overrides))
 
-    def finish(self) -> list[Path]:
+    def finish(self) -> None:
         from exit_decision.visualization.figures import render_episode
-        diagram, clips = render_episode(self.trace, self.layout, self.out_dir, self.stem, progress=False)
-        return [diagram.path, *clips]
+        render_episode(self.trace, self.layout, self.out_dir, self.stem, progress=False)

@@ -1,9 +1,12 @@
 """Files from an episode trace, with matplotlib: the time-space diagram and the bird's-eye clip.
 
 - ``time_space_diagram``: position against time, one panel per highway lane (leftmost on
-  top) and one for the exit ramps; one line per vehicle, coloured by class; commanded CAV
-  lane changes (triangles pointing to the target side), collisions (red crosses) and mode
-  switches (dashed lines, named) marked. The legend sits above the panels.
+  top) and one for the exit ramps; one line per vehicle, coloured by class; every CAV lane
+  change, whoever drove it (triangles pointing to the target side, in the target lane's
+  panel: filled when the policy's commands drove the CAV, hollow when SUMO's driver did),
+  the shield's overrides (orange circles, at the decision), collisions (red crosses; none
+  where the bridge's episode end counted none) and mode switches (dashed lines, named)
+  marked. The legend sits above the panels.
 - ``birds_eye_clip``: the scene of ``markers.MarkerScene`` (the markers the visualizer node
   publishes) drawn from above, as an animated GIF (Pillow writer) and, where ffmpeg exists,
   an MP4; ``speed`` times real time at ``fps`` frames per second, with a progress bar.
@@ -29,7 +32,7 @@ from exit_decision.visualization.layout import (
     COLLISION_COLOUR,
     RoadLayout,
 )
-from exit_decision.visualization.markers import MarkerScene, MarkerSpec
+from exit_decision.visualization.markers import OVERRIDE_COLOUR, MarkerScene, MarkerSpec
 from exit_decision.visualization.trace import EpisodeTrace
 
 RAMPS_PANEL = 'exit ramps'
@@ -43,7 +46,9 @@ class TimeSpace:
     trajectories: dict[str, str] = field(default_factory=dict)     # vehicle id -> class, of the lines drawn
     lines: list[tuple[str | int, str]] = field(default_factory=list)   # (panel, vehicle id) of each line drawn
     plot_areas: list[tuple[int, int, int, int]] = field(default_factory=list)   # panels, pixels: left, top, right, bottom
-    lane_changes: int = 0
+    lane_changes: int = 0                 # CAV lane changes marked
+    sumo_lane_changes: int = 0            # of them, driven by SUMO's driver (released CAVs, --driver sumo)
+    overrides: int = 0                    # shield overrides marked
     collisions: int = 0
     mode_switches: list[tuple[float, str, str]] = field(default_factory=list)   # time, from, to
 
@@ -82,14 +87,24 @@ def time_space_diagram(trace: EpisodeTrace, layout: RoadLayout, path: Path) -> T
             result.trajectories[vehicle_id] = classes[vehicle_id]
     previous_mode, decided_at, before = '', trace.frames[0].time if trace.frames else 0.0, {}
     for frame in trace.frames:
-        # commands answer the states of the frame before (the decision step): marked there
-        for vehicle_id, command in frame.decided.items():
-            vehicle = before.get(vehicle_id)
-            if command.lane_change and vehicle is not None:
-                ax_of[panel_of(vehicle)].plot(decided_at, vehicle.position, '^' if command.lane_change > 0 else 'v',
-                                              color='black', ms=5, zorder=4)
+        for vehicle in frame.vehicles:
+            # a lane change as the simulation counts one (same edge, another lane), whoever drove it
+            last = before.get(vehicle.vehicle_id)
+            if vehicle.is_cav and last is not None and last.edge_id == vehicle.edge_id \
+                    and last.lane_index != vehicle.lane_index:
+                ax_of[panel_of(vehicle)].plot(frame.time, vehicle.position,
+                                              '^' if vehicle.lane_index > last.lane_index else 'v', color='black',
+                                              mfc='black' if last.controlled else 'white', ms=6, zorder=4)
                 result.lane_changes += 1
-        for vehicle in frame.crashed:
+                result.sumo_lane_changes += not last.controlled
+        # overrides answer the states of the frame before (the decision step): marked there
+        for vehicle_id in frame.new_overrides:
+            vehicle = before.get(vehicle_id)
+            if vehicle is not None:
+                ax_of[panel_of(vehicle)].plot(decided_at, vehicle.position, 'o', color=OVERRIDE_COLOUR[:3], ms=6,
+                                              mec='black', mew=0.4, zorder=4)
+                result.overrides += 1
+        for vehicle in frame.crashed if trace.collisions != 0 else ():
             ax_of[panel_of(vehicle)].plot(frame.time, vehicle.position, 'X', color=COLLISION_COLOUR, ms=10,
                                           mec='black', mew=0.5, zorder=5)
             result.collisions += 1
@@ -115,11 +130,13 @@ def time_space_diagram(trace: EpisodeTrace, layout: RoadLayout, path: Path) -> T
                  y=0.995)
     handles = [Line2D([], [], color=CLASS_COLOURS[c], lw=2, label=c) for c in VEHICLE_CLASSES]
     handles += [Line2D([], [], ls='', marker='^', color='black', label='CAV lane change (left/right)'),
+                Line2D([], [], ls='', marker='^', color='black', mfc='white', label="... by SUMO's driver"),
+                Line2D([], [], ls='', marker='o', color=OVERRIDE_COLOUR[:3], mec='black', label='shield override'),
                 Line2D([], [], ls='', marker='X', color=COLLISION_COLOUR, mec='black', label='collision'),
                 Line2D([], [], ls='--', color='black', label='mode switch')]
-    fig.legend(handles=handles, loc='upper center', ncol=len(handles), fontsize=8, frameon=False,
+    fig.legend(handles=handles, loc='upper center', ncol=math.ceil(len(handles) / 2), fontsize=8, frameon=False,
                bbox_to_anchor=(0.5, 0.975))
-    fig.tight_layout(rect=(0, 0, 1, 0.955))
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     fig.canvas.draw()
     height = fig.get_size_inches()[1] * DPI
     for ax in axes:
@@ -133,7 +150,7 @@ def time_space_diagram(trace: EpisodeTrace, layout: RoadLayout, path: Path) -> T
 
 class MarkerPainter:
     """Draws MarkerSpecs on a matplotlib axes seen from above (z ignored)."""
-    SKIP = frozenset({'vehicle_ids'})   # ids are unreadable at a whole road's scale
+    SKIP = frozenset({'vehicle_ids', 'shield_text'})   # texts by vehicle are unreadable at a whole road's scale
 
     def __init__(self, ax):
         self.ax = ax

@@ -2,19 +2,18 @@
 
 x runs along the highway and equals the position along the road (front bumper, from the
 start of the first highway edge, junction lanes included, as ``VehicleState.position``); y points left,
-lane 0 (rightmost) at y = 0. The lane spacing and each exit ramp's direction are read from
-the generated SUMO network, so the drawing follows the simulated road.
+lane 0 (rightmost) at y = 0. Lanes are ``LANE_WIDTH`` apart (the width the network is built
+with); each exit ramp's start, end and direction come from the road geometry (read from the
+generated SUMO network), so the drawing follows the simulated road.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-import sumolib
-
 from exit_decision.config import RoadConfig
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.scenario.sumo_inputs import DIVERGES, HIGHWAY_EDGES, LANE_WIDTH
+from exit_decision.scenario.sumo_inputs import LANE_WIDTH
 from exit_decision.traffic import VEHICLE_CLASSES, VehicleState
 
 #: one colour per vehicle class (RGB in [0, 1]), the same in markers, diagrams and clips
@@ -47,20 +46,13 @@ class RoadLayout:
     lane_spacing: float           # [m] between lane centres
     road_length: float            # [m] position of the end of the last highway edge
     ramps: dict[str, Ramp]
+    last_section: str             # the last highway edge's name (labelled at its end)
 
     @classmethod
     def of(cls, geometry: RoadGeometry, road: RoadConfig) -> RoadLayout:
-        net = sumolib.net.readNet(str(geometry.net_file))
-        ys = [net.getLane(f'{HIGHWAY_EDGES[0]}_{i}').getShape()[0][1] for i in range(road.lane_count)]
-        spacing = ys[1] - ys[0] if len(ys) > 1 else LANE_WIDTH
-        ramps = {}
-        for highway_edge, ramp_id in DIVERGES.items():
-            (x0, y0), *_, (x1, y1) = net.getLane(f'{ramp_id}_0').getShape()
-            norm = math.hypot(x1 - x0, y1 - y0)
-            ramps[ramp_id] = Ramp(ramp_id, geometry.diverge_at[highway_edge],
-                                  geometry.lanes[f'{ramp_id}_0'].offset + road.ramp_length,
-                                  ((x1 - x0) / norm, (y1 - y0) / norm))
-        return cls(road.lane_count, spacing, geometry.road_length, ramps)
+        ramps = {e.ramp: Ramp(e.ramp, e.diverge_at, geometry.lanes[f'{e.ramp}_0'].offset + road.ramp_length,
+                              e.direction) for e in geometry.exits.values()}
+        return cls(geometry.lane_count, LANE_WIDTH, geometry.road_length, ramps, geometry.sections[-1])
 
     def lane_y(self, lane_index: int) -> float:
         return lane_index * self.lane_spacing
@@ -104,7 +96,7 @@ class RoadLayout:
     def labels(self) -> list[tuple[str, float, float]]:
         """Edge names where they end: each exit and the highway's end."""
         labels = [(ramp.edge_id, *self._end_point(ramp)) for ramp in self.ramps.values()]
-        return labels + [(HIGHWAY_EDGES[-1], self.road_length, self.lane_y(self.lane_count - 1) + 2 * self.lane_spacing)]
+        return labels + [(self.last_section, self.road_length, self.lane_y(self.lane_count - 1) + 2 * self.lane_spacing)]
 
     def _end_point(self, ramp: Ramp) -> tuple[float, float]:
         pose = self.along(ramp.edge_id, ramp.end)

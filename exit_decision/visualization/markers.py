@@ -4,8 +4,10 @@
 boundaries and ramps as line strips, edge names), each vehicle as a box sized by its length
 and coloured by class with its id as text, the graph's edges, each CAV's last command (an
 arrow forward, or into the target lane for a lane change, coloured by the acceleration),
-collisions (a red disc and text, kept ``collision_hold`` seconds) and a text with the mode,
-time and shield overrides; then a DELETE for every marker of the previous update that is
+the CAVs whose held command the shield chose instead of their driver's (an orange frame
+around the box and a text: wanted -> given), collisions (a red disc and text, kept
+``collision_hold`` seconds) and a text with the mode, time, shield overrides and, after the
+episode's end, the bridge's collision count; then a DELETE for every marker of the previous update that is
 gone (vehicles that left). A new episode starts with DELETEALL.
 """
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from exit_decision.shield_overrides import ShieldOverride
 from exit_decision.visualization.layout import (
     CLASS_COLOURS,
     COLLISION_COLOUR,
@@ -31,6 +34,7 @@ ARROW_LENGTH = 6.0        # [m] of a command arrow
 EDGE_COLOUR: Colour = (0.55, 0.55, 0.55, 0.6)
 TEXT_COLOUR: Colour = (0.1, 0.1, 0.1, 1.0)
 OVERRIDE_COLOUR: Colour = (0.9, 0.4, 0.0, 1.0)
+OVERRIDE_MARGIN = 0.8     # [m] of the orange frame around a CAV the shield overrode
 ACCELERATION_RANGE = (-6.0, 3.0)   # [m/s^2] colour scale of command arrows: full red / full green there
 
 
@@ -99,6 +103,9 @@ class MarkerScene:
         for vehicle in frame.vehicles:
             pose = poses[vehicle.vehicle_id] = self.layout.place(vehicle)
             marker_id = self.vehicle_id(vehicle.vehicle_id)
+            override = frame.overridden.get(vehicle.vehicle_id)
+            if override is not None:   # before the box: drawn from above, the box covers the frame's middle
+                markers += self.override_markers(marker_id, vehicle.length, pose, override)
             markers.append(MarkerSpec('vehicles', marker_id, 'CUBE', position=(pose.x, pose.y, VEHICLE_HEIGHT / 2),
                                       yaw=pose.yaw, scale=(vehicle.length, VEHICLE_WIDTH, VEHICLE_HEIGHT),
                                       colour=rgba(CLASS_COLOURS[vehicle.vehicle_class])))
@@ -129,6 +136,16 @@ class MarkerScene:
                           colour=acceleration_colour(acceleration), points=((front_x, front_y, 1.0), tip),
                           text=f'{lane_change:+d} {acceleration:+.1f}')
 
+    def override_markers(self, marker_id: int, length: float, pose, override: ShieldOverride) -> list[MarkerSpec]:
+        wanted, given = override.preferred, override.applied
+        return [MarkerSpec('shield_overrides', marker_id, 'CUBE', position=(pose.x, pose.y, 0.1), yaw=pose.yaw,
+                           scale=(length + 2 * OVERRIDE_MARGIN, VEHICLE_WIDTH + 2 * OVERRIDE_MARGIN, 0.2),
+                           colour=OVERRIDE_COLOUR),
+                MarkerSpec('shield_text', marker_id, 'TEXT_VIEW_FACING',
+                           position=(pose.x, pose.y, VEHICLE_HEIGHT + 3.0), scale=(0.0, 0.0, 1.2), colour=OVERRIDE_COLOUR,
+                           text=f'shield: {wanted.lane_change:+d} {wanted.acceleration:+.1f} -> '
+                                f'{given.lane_change:+d} {given.acceleration:+.1f}')]
+
     def collision_markers(self, frame: Frame) -> list[MarkerSpec]:
         markers = []
         for _, index, x, y, vehicle_id in self.collisions:
@@ -146,6 +163,8 @@ class MarkerScene:
             highlight = self.overrides_seen is not None and frame.overrides > self.overrides_seen
             self.overrides_seen = frame.overrides
             lines.append(f'shield overrides: {frame.overrides}' + ('  (new)' if highlight else ''))
+        if frame.collisions is not None:
+            lines.append(f'episode ended: {frame.collisions} collision(s) (the bridge\'s count)')
         x = self.layout.road_length / 2
         y = self.layout.lane_y(self.layout.lane_count - 1) + 3 * self.layout.lane_spacing
         return MarkerSpec('status', 0, 'TEXT_VIEW_FACING', position=(x, y, 0.0), scale=(0.0, 0.0, 3.0),
@@ -158,6 +177,8 @@ class MarkerScene:
             self.episode, self.ids, self.collisions, self.overrides_seen = frame.episode, {}, [], None
             self.clear = True
         self.collisions = [c for c in self.collisions if frame.time - c[0] <= self.collision_hold]
+        if frame.collisions == 0:
+            self.collisions = []   # the bridge counted none: the vehicles that vanished were no crashes
         for vehicle in frame.crashed:
             pose = self.layout.place(vehicle)
             self.collision_count += 1

@@ -1,0 +1,229 @@
+"""The comparison's page (``docs/comparison.md``) and figures, read back from a compare sweep.
+
+A learned method trained with several seeds is one row: its episodes on each test seed are
+averaged over the training seeds first, so every interval is over test seeds (the same ones
+for every method, which makes the differences paired). Per variant: the metrics of SPEC
+section 6 (mean with 95% interval), each method against the neutral teacher under every
+mode, then the papers' claims as paired differences under the training mode, each said to
+hold, fail or stay unresolved by its interval; each method's drop from the base scenario;
+the learning curves of all learned methods on one figure (the teacher's validation return
+as a line) and their training wall time per 100 episodes.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult
+from exit_decision.evaluation.plots import plt, read_csv, rolling, save
+from exit_decision.evaluation.report import TEACHER, comparison_markdown, paired_comparison
+from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.tables import read_rows
+
+TABLE_METRICS = ('reward', 'p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking')
+#: the papers' claims: (statement, method, compared with); a missing method leaves the claim out
+CLAIMS = (
+    ('MDGQN > GQN (paper 000)', 'mdgqn', 'gqn'),
+    ('DDQN > DQN (paper 002)', 'ddqn', 'dqn'),
+    ('Dueling DQN > DQN (paper 002)', 'dueling_dqn', 'dqn'),
+    ('Dueling DDQN + PER (6 nearest) > Dueling DQN (grid) (paper 003; PER, double target, state: together)',
+     'dueling_ddqn_per', 'dueling_dqn'),
+    ('SGRL > MGRL (paper 001)', 'sgrl', 'mgrl'),
+    ('SGRL > NGRL (paper 001)', 'sgrl', 'ngrl'),
+    ('MGRL (GCN) > NGRL (no GCN) (paper 001)', 'mgrl', 'ngrl'),
+)
+
+
+def episodes_of(path: Path) -> list[dict[str, float]]:
+    return [{key: float(value) for key, value in row.items()} for row in read_rows(path)]
+
+
+def averaged_over_training_seeds(runs: Sequence[list[dict[str, float]]]) -> list[dict[str, float]]:
+    """One episode row per test seed: each metric's mean over the training seeds' runs."""
+    by_seed: dict[float, list[dict[str, float]]] = {}
+    for run in runs:
+        for episode in run:
+            by_seed.setdefault(episode['seed'], []).append(episode)
+    return [{key: float(np.nanmean([e[key] for e in group])) for key in group[0]} for _, group in sorted(by_seed.items())]
+
+
+def variant_runs(variant_dir: Path, learned: dict[str, list[str]], drivers: Sequence[str],
+                 modes: Sequence[str]) -> dict[str, dict[str, list[dict[str, float]]]]:
+    """method -> mode -> episode rows (learned methods averaged over their training runs)."""
+    out: dict[str, dict[str, list[dict[str, float]]]] = {}
+    for driver in drivers:
+        found = {mode: episodes_of(variant_dir / f'{driver}_{mode}.csv') for mode in modes
+                 if (variant_dir / f'{driver}_{mode}.csv').is_file()}
+        if found:
+            out[driver] = found
+    for method, run_names in learned.items():
+        found = {}
+        for mode in modes:
+            paths = [variant_dir / f'{name}_{mode}.csv' for name in run_names]
+            if paths and all(path.is_file() for path in paths):
+                found[mode] = averaged_over_training_seeds([episodes_of(path) for path in paths])
+        if found:
+            out[method] = found
+    return out
+
+
+def metrics_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str) -> str:
+    header = ['method', *(f'{m} [95%]' for m in TABLE_METRICS)]
+    lines = ['| ' + ' | '.join(header) + ' |', '|---' * len(header) + '|']
+    for method, by_mode in runs.items():
+        if mode not in by_mode:
+            continue
+        cells = []
+        for metric in TABLE_METRICS:
+            mean, low, high = paired_interval([e[metric] for e in by_mode[mode]])
+            cells.append(f'{mean:.4g} [{low:.4g}, {high:.4g}]')
+        lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
+def paired_difference(a: list[dict[str, float]], b: list[dict[str, float]], metric: str) -> tuple[float, float, float]:
+    theirs = {e['seed']: e[metric] for e in b}
+    return paired_interval([e[metric] - theirs[e['seed']] for e in a if e['seed'] in theirs])
+
+
+def verdict(low: float, high: float) -> str:
+    return 'holds' if low > 0 else 'fails (reversed)' if high < 0 else 'unresolved (interval includes 0)'
+
+
+def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str) -> list[str]:
+    lines = []
+    claims = [*CLAIMS, *((f'{method} > {TEACHER} (learned > rule-based)', method, TEACHER)
+                         for method in runs if method not in (TEACHER, 'sumo'))]
+    for statement, method, other in claims:
+        if mode in runs.get(method, {}) and mode in runs.get(other, {}):
+            mean, low, high = paired_difference(runs[method][mode], runs[other][mode], 'reward')
+            lines.append(f'- {statement}: return difference {mean:+.3f} [{low:+.3f}, {high:+.3f}]: '
+                         f'**{verdict(low, high)}**')
+    return lines
+
+
+def drop_table(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], base: str, mode: str) -> str:
+    """Each method's mean Exit-1 rate and return on every variant minus on the base scenario."""
+    variants = [v for v in per_variant if v != base]
+    lines = ['| method | ' + ' | '.join(f'{v}: Δp_CAV / Δreturn' for v in variants) + ' |',
+             '|---' * (len(variants) + 1) + '|']
+    for method, by_mode in per_variant.get(base, {}).items():
+        if mode not in by_mode:
+            continue
+        base_p = np.mean([e['p_CAV'] for e in by_mode[mode]])
+        base_r = np.mean([e['reward'] for e in by_mode[mode]])
+        cells = []
+        for variant in variants:
+            episodes = per_variant[variant].get(method, {}).get(mode)
+            cells.append('—' if not episodes else
+                         f'{np.mean([e["p_CAV"] for e in episodes]) - base_p:+.3f} / '
+                         f'{np.mean([e["reward"] for e in episodes]) - base_r:+.3f}')
+        lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
+def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path) -> Path | None:
+    """Every learned method's training return (mean over its seeds, rolling mean) on one figure,
+    with the teacher's validation return as a line."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    teacher = []
+    for method, run_names in learned.items():
+        curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
+                  if (training_dir / name / 'training.csv').is_file()]
+        curves = [c['reward'] for c in curves if c]
+        if not curves:
+            continue
+        length = min(len(c) for c in curves)
+        ax.plot(rolling(np.mean([c[:length] for c in curves], axis=0)), label=f'{method} ({len(curves)} seeds)')
+        teacher += [float(r['teacher_return']) for name in run_names
+                    for r in read_rows(training_dir / name / 'validation.csv')
+                    if (training_dir / name / 'validation.csv').is_file()]
+    if not ax.lines:
+        plt.close(fig)
+        return None
+    if teacher:
+        ax.axhline(float(np.mean(teacher)), color='black', linestyle='--', label='teacher (validation seeds)')
+    ax.set_xlabel('RL episode (after pre-training)')
+    ax.set_ylabel('episode return, training mode (rolling mean)')
+    ax.legend(fontsize=7, ncol=2)
+    return save(fig, out)
+
+
+def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], mode: str,
+                   out: Path) -> Path | None:
+    """Return under the training mode per method across the variants, with 95% intervals."""
+    variants = list(per_variant)
+    methods = sorted({m for runs in per_variant.values() for m in runs})
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    width = 0.8 / max(len(methods), 1)
+    for i, method in enumerate(methods):
+        xs, means, errors = [], [], []
+        for j, variant in enumerate(variants):
+            episodes = per_variant[variant].get(method, {}).get(mode)
+            if episodes:
+                mean, low, _ = paired_interval([e['reward'] for e in episodes])
+                xs.append(j + (i - len(methods) / 2 + 0.5) * width)
+                means.append(mean)
+                errors.append(mean - low if np.isfinite(low) else 0.0)
+        ax.bar(xs, means, width, yerr=errors, label=method, capsize=2)
+    ax.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
+    ax.set_ylabel(f'episode return under {mode} (95% interval)')
+    ax.legend(fontsize=7, ncol=3)
+    return save(fig, out)
+
+
+def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[str]:
+    lines = ['| method | training wall time per 100 RL episodes [s] (mean over seeds) | total per run [s] |',
+             '|---|---|---|']
+    for method, run_names in learned.items():
+        timings = [json.loads((training_dir / name / 'timing.json').read_text()) for name in run_names
+                   if (training_dir / name / 'timing.json').is_file()]
+        if timings:
+            per_100 = np.mean([100.0 * t['rl_s'] / t['episodes'] for t in timings])
+            lines.append(f'| {method} | {per_100:.0f} | {np.mean([t["total_s"] for t in timings]):.0f} |')
+    return lines
+
+
+def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learned: dict[str, list[str]],
+                     drivers: Sequence[str], modes: Sequence[str], training_mode: str, max_steps: int,
+                     command: str, budget: dict | None) -> Path:
+    """The page at ``report`` and its figures beside it (``<report stem>_*.png``)."""
+    report.parent.mkdir(parents=True, exist_ok=True)
+    per_variant = {variant: variant_runs(out_dir / variant, learned, drivers, modes) for variant in variants}
+    per_variant = {variant: runs for variant, runs in per_variant.items() if runs}
+    figures = [learning_curves(out_dir / 'training', learned, report.with_name(f'{report.stem}_learning_curves.png')),
+               variant_figure(per_variant, training_mode, report.with_name(f'{report.stem}_variants.png'))]
+    seeds = sorted({len(names) for names in learned.values()})
+    sections = ['# Comparison: every method on our highway-exit scenario and its variants',
+                (f'Made by `{command}` (nothing on this page is written by hand). Every method is evaluated on '
+                 f'every variant on the same test seeds; intervals are 95%, over test seeds.')]
+    if learned:
+        sections += [
+            (f'Learned methods are trained on the base scenario for the mode {training_mode} with '
+             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget and our measures (shield, '
+             f'decision interval, lane planner, demonstrations); a method\'s episodes are averaged over its '
+             f'training seeds per test seed.'),
+            '**Budget** (merged over config/training.yaml for every method alike):\n\n```json\n'
+            + json.dumps(budget or {}, indent=2) + '\n```']
+    sections += [f'![{figure.stem}]({figure.name})' for figure in figures if figure is not None]
+    if learned:
+        sections.append('## Training wall time\n\n' + '\n'.join(wall_time_lines(out_dir / 'training', learned)))
+    for variant, runs in per_variant.items():
+        sections.append(f'## {variant}\n\n### Metrics under {training_mode}\n\n' + metrics_table(runs, training_mode))
+        evaluated = [EvaluatedRun(f'{method}_{mode}', episodes, EvaluationResult())
+                     for method, by_mode in runs.items() for mode, episodes in by_mode.items()]
+        paired = paired_comparison(evaluated, modes, max_steps)
+        if paired:
+            sections.append('### Against the neutral teacher, every mode\n\n' + comparison_markdown(paired))
+        claims = claim_lines(runs, training_mode)
+        if claims:
+            sections.append(f'### The papers\' claims here (return under {training_mode}, paired)\n\n'
+                            + '\n'.join(claims))
+    if len(per_variant) > 1 and next(iter(per_variant)) == variants[0]:
+        sections.append(f'## Drop under the variants ({training_mode}; variant minus {variants[0]}, means)\n\n'
+                        + drop_table(per_variant, variants[0], training_mode))
+    report.write_text('\n\n'.join(sections) + '\n', encoding='utf-8')
+    return report
