@@ -262,7 +262,7 @@ class TrainingRun:
         """Finished (timing.json is the trainer's last file: an interrupted run has none) with
         this config (another budget or setting: train again)."""
         directory = self.directory(out_dir)
-        if not (directory / 'timing.json').is_file():
+        if not ((directory / 'timing.json').is_file() and (directory / 'policy.pt').is_file()):
             return False
         recorded = json.loads((directory / 'config.json').read_text())
         return (recorded['episodes'], recorded['config']) == (config.training.episodes,
