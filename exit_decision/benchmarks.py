@@ -62,7 +62,7 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
         for label, updates in (('without learning', 0), ('with learning', training.updates_per_decision)):
             def learn(transitions: list, updates: int = updates) -> None:
                 for _ in range(updates):
-                    trainer.agent.update(*trainer.sample(), 1.0)
+                    trainer.learn_step()
             steps, started = 0, time.perf_counter()
             for episode in range(episodes):
                 trainer.collect_episode(seed + episode, demonstrate=False, epsilon=0.1, on_decision=learn)
@@ -70,7 +70,7 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
             elapsed = time.perf_counter() - started
             timings[label] = (steps / elapsed, elapsed / episodes)
             lines.append(f'  env steps/s {label:<17} {steps / elapsed:8.0f}   ({elapsed / episodes:.2f} s per episode)')
-        batch, demo = trainer.sample()
+        batch, demo, _, _ = trainer.sample()
         for _ in range(10):
             trainer.agent.update(batch, demo, 1.0)
         count, started = 200, time.perf_counter()

@@ -285,7 +285,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     report = write_comparison(args.out, args.report or args.out / 'comparison.md', list(configs), learned,
                               sorted({cell.method for cell in cells if cell.method not in trained}),
                               modes, training_mode, base.scenario.max_steps,
-                              'exit-decision ' + ' '.join(sys.argv[1:]), budget)
+                              'exit-decision ' + ' '.join(sys.argv[1:]), budget,
+                              [method for method in base.training.methods if method not in methods])
     if methods:
         print('training: ' + trainings.summary())
     print(result.summary())

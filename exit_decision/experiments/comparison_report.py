@@ -24,6 +24,7 @@ from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.tables import read_rows
 
 TABLE_METRICS = ('reward', 'p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking')
+MIN_SEEDS_FOR_CLAIM = 3   # training seeds a learned method needs before a claim is made on it
 #: the papers' claims: (statement, method, compared with); a missing method leaves the claim out
 CLAIMS = (
     ('MDGQN > GQN (paper 000)', 'mdgqn', 'gqn'),
@@ -93,15 +94,19 @@ def verdict(low: float, high: float) -> str:
     return 'holds' if low > 0 else 'fails (reversed)' if high < 0 else 'unresolved (interval includes 0)'
 
 
-def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str) -> list[str]:
+def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, seeds: dict[str, int]) -> list[str]:
+    """Each claim whose two sides were evaluated: the paired return difference and its verdict
+    (a learned side with fewer than MIN_SEEDS_FOR_CLAIM training seeds: no verdict)."""
     lines = []
     claims = [*CLAIMS, *((f'{method} > {TEACHER} (learned > rule-based)', method, TEACHER)
                          for method in runs if method not in (TEACHER, 'sumo'))]
     for statement, method, other in claims:
         if mode in runs.get(method, {}) and mode in runs.get(other, {}):
             mean, low, high = paired_difference(runs[method][mode], runs[other][mode], 'reward')
+            few = [f'{m} has {seeds[m]} training seed(s)' for m in (method, other)
+                   if seeds.get(m, MIN_SEEDS_FOR_CLAIM) < MIN_SEEDS_FOR_CLAIM]
             lines.append(f'- {statement}: return difference {mean:+.3f} [{low:+.3f}, {high:+.3f}]: '
-                         f'**{verdict(low, high)}**')
+                         + (f'no verdict ({"; ".join(few)})' if few else f'**{verdict(low, high)}**'))
     return lines
 
 
@@ -189,8 +194,9 @@ def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[s
 
 def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learned: dict[str, list[str]],
                      drivers: Sequence[str], modes: Sequence[str], training_mode: str, max_steps: int,
-                     command: str, budget: dict | None) -> Path:
-    """The page at ``report`` and its figures beside it (``<report stem>_*.png``)."""
+                     command: str, budget: dict | None, left_out: Sequence[str] = ()) -> Path:
+    """The page at ``report`` and its figures beside it (``<report stem>_*.png``); ``left_out``:
+    learned methods of the config this sweep did not train (said on the page)."""
     report.parent.mkdir(parents=True, exist_ok=True)
     per_variant = {variant: variant_runs(out_dir / variant, learned, drivers, modes) for variant in variants}
     per_variant = {variant: runs for variant, runs in per_variant.items() if runs}
@@ -208,6 +214,8 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
              f'training seeds per test seed.'),
             '**Budget** (merged over config/training.yaml for every method alike):\n\n```json\n'
             + json.dumps(budget or {}, indent=2) + '\n```']
+    if left_out:
+        sections.append(f'Not in this comparison (not trained by this command): {", ".join(left_out)}.')
     sections += [f'![{figure.stem}]({figure.name})' for figure in figures if figure is not None]
     if learned:
         sections.append('## Training wall time\n\n' + '\n'.join(wall_time_lines(out_dir / 'training', learned)))
@@ -218,7 +226,7 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
         paired = paired_comparison(evaluated, modes, max_steps)
         if paired:
             sections.append('### Against the neutral teacher, every mode\n\n' + comparison_markdown(paired))
-        claims = claim_lines(runs, training_mode)
+        claims = claim_lines(runs, training_mode, {method: len(names) for method, names in learned.items()})
         if claims:
             sections.append(f'### The papers\' claims here (return under {training_mode}, paired)\n\n'
                             + '\n'.join(claims))
