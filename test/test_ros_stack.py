@@ -373,8 +373,10 @@ def bad_messages(latest: VehicleStateArray) -> list:
 
     episode, step = latest.episode, latest.step
     vehicles = states_from_msg(latest, ('Highway_0', 'Highway_1', 'Highway_2')) or [make_vehicle('HV1_0', position=20.0)]
+    # bad fields on a step the gates accept as next (9 ahead: within their gap of 10, still ahead of
+    # the stack when this process lags it by a few steps), so the field checks, not the sequence, refuse them
     states = [states_to_msg([dataclasses.replace(vehicles[0], **change), *vehicles[1:]], episode=episode,
-                            step=step + 1, step_length=0.1, frame_id='fuzz')
+                            step=step + 9, step_length=0.1, frame_id='fuzz')
               for change in ({'lane_index': 127}, {'lane_index': -128}, {'lane_index': 3}, {'lane_index': -1},
                              {'speed': math.nan}, {'position': 3e38})]
     states[-1].vehicles[0].vehicle_class = 9                  # no such class
