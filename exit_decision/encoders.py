@@ -56,15 +56,14 @@ class StateEncoder:
             features[row] = row_features(snapshot.by_id[graph.vehicle_ids[row]], snapshot)
         return replace(graph, features=features)
 
-    def _lane_of(self, vehicle: VehicleState) -> int | None:
-        return vehicle.lane_index if vehicle.on_highway else None
-
     def grid(self, ego: VehicleState, snapshot: TrafficSnapshot) -> np.ndarray:
         cells = np.zeros((self.lane_count, GRID_CELLS, 2), np.float32)
         half = GRID_CELLS // 2
         for other in snapshot.vehicles:
-            same_corridor = other.corridor == ego.corridor
-            lane = self._lane_of(other) if ego.on_highway else (0 if same_corridor else None)
+            if ego.on_highway:   # the highway's lanes; on a ramp, its one corridor as lane 0
+                lane = other.lane_index if other.on_highway else None
+            else:
+                lane = 0 if other.corridor == ego.corridor else None
             if lane is None or not 0 <= lane < self.lane_count:
                 continue
             cell = math.floor((other.position - ego.position) / GRID_CELL_LENGTH + 0.5) + half

@@ -143,9 +143,8 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
             continue
         length = min(len(c) for c in curves)
         ax.plot(rolling(np.mean([c[:length] for c in curves], axis=0)), label=f'{method} ({len(curves)} seeds)')
-        teacher += [float(r['teacher_return']) for name in run_names
-                    for r in read_rows(training_dir / name / 'validation.csv')
-                    if (training_dir / name / 'validation.csv').is_file()]
+        validations = [training_dir / name / 'validation.csv' for name in run_names]
+        teacher += [float(r['teacher_return']) for path in validations if path.is_file() for r in read_rows(path)]
     if not ax.lines:
         plt.close(fig)
         return None
