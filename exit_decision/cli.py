@@ -269,7 +269,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     modes = args.mode or list(base.training.conditioning.validation_modes)
     for mode in modes:
         base.mode(mode)
-    methods = list(base.training.methods) if args.train == ['all'] else args.train
+    methods = base.training.method_names if args.train == ['all'] else args.train
     runs, trained, training_mode, budget, trainings = [], {}, base.env.mode, None, SweepResult()
     if methods:
         runs, budgeted, budget = load_comparison_training(args.training or config_dir / 'comparison.yaml',
@@ -286,7 +286,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
                               sorted({cell.method for cell in cells if cell.method not in trained}),
                               modes, training_mode, base.scenario.max_steps,
                               'exit-decision ' + ' '.join(sys.argv[1:]), budget,
-                              [method for method in base.training.methods if method not in methods])
+                              [method for method in base.training.method_names if method not in methods])
     if methods:
         print('training: ' + trainings.summary())
     print(result.summary())
@@ -354,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(train)
     train.add_argument('--algorithm', default='mdgqn',
                        help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
-                            'sgrl, mgrl, ngrl')
+                            'sgrl, mgrl, ngrl, and each baseline as published (<name>_published, e.g. dqn_published)')
     train.add_argument('--mode', default='conditioned',
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')

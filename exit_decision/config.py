@@ -205,7 +205,35 @@ class BaselineRewardConfig(Strict):
     collision: float
 
 
-RewardVariant = Annotated[MatrixRewardConfig | BaselineRewardConfig, Field(discriminator='kind')]
+class TermsRewardConfig(Strict):
+    """Papers 002 and 003 (exit_decision/reward.py ``TermsReward``): a weighted sum of each
+    CAV's terms; per-step terms are counted per simulation step times ``step_weight``."""
+    kind: Literal['terms']
+    collision: float                 # per collision the CAV is in
+    speed: float                     # per step, times (v - v_min) / (lane limit - v_min) in [0, 1]
+    v_min: SpeedBounds
+    lane_change: float               # per lane change of the CAV
+    step: float                      # per step on the road
+    clean_exit: float                # once, for a CAV that leaves the road (never collided)
+    step_weight: PositiveFloat
+
+
+class IntentionRewardConfig(Strict):
+    """Paper 001's eq. 2-5 (exit_decision/reward.py ``IntentionReward``)."""
+    kind: Literal['intention']
+    intention_weight: float          # w_I
+    collision_weight: float          # w_C
+    on_route: float                  # R_I per step in a lane of the route to the target exit
+    off_route: float                 # R_I per step in another lane
+    reached: float                   # R_I once, leaving by the target exit
+    missed: float                    # R_I once, leaving by another exit
+    speed_max: PositiveFloat         # [m/s] v_max of R_S = v / v_max - speed_offset
+    speed_offset: float
+    step_weight: PositiveFloat
+
+
+RewardVariantConfig = MatrixRewardConfig | BaselineRewardConfig | TermsRewardConfig | IntentionRewardConfig
+RewardVariant = Annotated[RewardVariantConfig, Field(discriminator='kind')]
 
 
 class RewardConfig(Strict):
@@ -284,6 +312,15 @@ class PrioritizedReplayConfig(Strict):
     beta: Probability
 
 
+class PublishedConfig(Strict):
+    """What a baseline's "as published" row changes: its paper's reward and exploration."""
+    reward_variant: str              # a key of config/reward.yaml, used in training
+    training: dict = {}              # over the method's own settings (its paper's exploration)
+
+
+PUBLISHED_SUFFIX = '_published'
+
+
 class MethodConfig(Strict):
     """A learned method: a state encoder, a network and a loss (issue 11)."""
     paper: str
@@ -295,6 +332,20 @@ class MethodConfig(Strict):
     prioritized: PrioritizedReplayConfig | None = None
     single_agent: bool = False       # SGRL: one CAV learns, the others drive as humans in training
     training: dict = {}              # the method's own settings over this file's (e.g. paper 003's)
+    published: PublishedConfig | None = None   # adds the method <name>_published
+    # set on a <name>_published method, not in the file: trained with its paper's reward,
+    # without our measures (only lanes that exist are masked; no lane planner, no demonstrations)
+    measures: bool = True
+    reward_variant: str | None = None   # None: config/env.yaml's
+
+    def as_published(self) -> MethodConfig:
+        """The method as its paper published it (``published`` must be set)."""
+        p = self.published
+        return self.model_copy(update={
+            'description': f'{self.description}; as published (its reward, its exploration, no shield, '
+                           'no lane planner, no demonstrations)',
+            'training': deep_merge(self.training, p.training), 'published': None, 'measures': False,
+            'reward_variant': p.reward_variant})
 
 
 class ExplorationConfig(Strict):
@@ -314,6 +365,11 @@ class DemonstrationConfig(Strict):
     margin_weight_end: NonNegativeFloat
     margin_decay_episodes: PositiveInt
     pretrain_updates: Count
+
+
+#: a method run as published learns from its own experience alone
+NO_DEMONSTRATIONS = {'episodes': 0, 'pretrain_updates': 0, 'batch_share': 0.0, 'margin_weight_start': 0.0,
+                     'margin_weight_end': 0.0}
 
 
 class ValidationConfig(Strict):
@@ -347,14 +403,24 @@ class TrainingConfig(Strict):
     conditioning: ConditioningConfig
     methods: dict[str, MethodConfig]
 
+    @property
+    def method_names(self) -> list[str]:
+        """Every method: each of the file, then <name>_published for each with a published row."""
+        return [*self.methods, *(name + PUBLISHED_SUFFIX for name, m in self.methods.items() if m.published)]
+
     def method(self, name: str) -> MethodConfig:
-        if name not in self.methods:
-            raise ConfigError(f'unknown method {name!r}; known: {", ".join(self.methods)}')
-        return self.methods[name]
+        base = name.removesuffix(PUBLISHED_SUFFIX)
+        if name not in self.method_names:
+            raise ConfigError(f'unknown method {name!r}; known: {", ".join(self.method_names)}')
+        return self.methods[name] if name in self.methods else self.methods[base].as_published()
 
     def of_method(self, name: str) -> TrainingConfig:
-        """These settings with the method's own over them (validated when the file is loaded)."""
-        override = self.method(name).training
+        """These settings with the method's own over them (validated when the file is loaded);
+        a method without our measures has no demonstrations."""
+        method = self.method(name)
+        override = method.training
+        if not method.measures:
+            override = deep_merge(override, {'demonstrations': NO_DEMONSTRATIONS})
         if not override:
             return self
         return parse(TrainingConfig, deep_merge(self.model_dump(), override), f'methods.{name}.training')
@@ -432,7 +498,7 @@ class ProjectConfig(BaseModel):
     env: EnvConfig
     modes: dict[str, ModeConfig]
     mode_matrix: ModeMatrix
-    rewards: dict[str, MatrixRewardConfig | BaselineRewardConfig]
+    rewards: dict[str, RewardVariantConfig]
     training: TrainingConfig
 
     def mode(self, name: str) -> ModeConfig:
@@ -440,7 +506,7 @@ class ProjectConfig(BaseModel):
             raise ConfigError(f'unknown mode {name!r}; known modes: {", ".join(self.modes)}')
         return self.modes[name]
 
-    def reward(self, name: str) -> MatrixRewardConfig | BaselineRewardConfig:
+    def reward(self, name: str) -> RewardVariantConfig:
         if name not in self.rewards:
             raise ConfigError(f'unknown reward variant {name!r}; known: {", ".join(self.rewards)}')
         return self.rewards[name]
@@ -489,8 +555,14 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
         if name not in config.modes:
             raise ConfigError(f'{sources["modes"]}: matrix: unknown mode {name!r}; known modes: {", ".join(config.modes)}')
     for method, settings in config.training.methods.items():
-        if 'methods' in settings.training:
-            raise ConfigError(f'{sources["training"]}: methods.{method}.training: may not hold methods')
+        for key, values in (('training', settings.training),
+                            ('published.training', settings.published.training if settings.published else {})):
+            if 'methods' in values:
+                raise ConfigError(f'{sources["training"]}: methods.{method}.{key}: may not hold methods')
+        if settings.published and settings.published.reward_variant not in config.rewards:
+            raise ConfigError(f'{sources["training"]}: methods.{method}.published.reward_variant: unknown '
+                              f'{settings.published.reward_variant!r}; known: {", ".join(config.rewards)}')
+    for method in config.training.method_names:
         try:
             config.training.of_method(method)
         except ConfigError as error:

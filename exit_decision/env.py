@@ -3,7 +3,8 @@
 One ``step`` is one decision: every CAV row of the action vector gets its own action from
 the ``ActionGrid``, which is held for ``decision_interval`` simulation steps (a lane change
 is issued once). The reward is the paper's global scalar of the reward function matrix under
-the env's mode, summed over the interval; ``info['reward_vector']`` holds what any mode's
+the env's mode, summed over the interval (or a baseline's own reward, ``learning_reward``;
+the episode log, and so every metric, stays under the matrix); ``info['reward_vector']`` holds what any mode's
 scalar is made of (``exit_decision.reward``), split by owner: (N, 4, 2) for the CAV rows
 that acted at this decision and (4, 2) shared (every other term, vehicles that did not act
 included), so the trainer can score it under other modes and credit each CAV its own part.
@@ -37,7 +38,7 @@ class ExitDecisionEnv(gym.Env):
 
     def __init__(self, config: ProjectConfig, mode: str | None = None, reward_variant: str | None = None,
                  cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo', keep_step_inputs: bool = False,
-                 single_agent: bool = False):
+                 single_agent: bool = False, learning_reward: str | None = None):
         self.config = config
         # the episode's reward inputs, kept to score it under other reward variants afterwards
         self.step_inputs: list[StepRewardInputs] | None = [] if keep_step_inputs else None
@@ -49,9 +50,16 @@ class ExitDecisionEnv(gym.Env):
         self.actions = ActionGrid(config.env.actions)
         self.shield = Shield.of(config, self.actions, self.sim.geometry)
         self.planner = LanePlanner.of(config, self.shield)   # for learned policies; None: off
-        self.reward_fn = make_reward(config.reward(reward_variant or config.env.reward_variant),
-                                     scenario.step_length, scenario.emergency_braking_threshold)
+        # reward_fn scores the episode log (every metric); the agent learns from learning_reward_fn
+        # (``learning_reward``: a baseline's own reward, e.g. a paper's; default: the same)
+        scored = reward_variant or config.env.reward_variant
+        self.reward_fn, self.learning_reward_fn = (
+            make_reward(config.reward(variant), scenario.step_length, scenario.emergency_braking_threshold,
+                        self.sim.geometry.route_lanes) for variant in (scored, learning_reward or scored))
+        if (learning_reward or scored) == scored:
+            self.learning_reward_fn = self.reward_fn
         self.mode_weights = self.reward_fn.weights(config.mode(self.mode))
+        self.learning_weights = self.learning_reward_fn.weights(config.mode(self.mode))
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
         self.observation_space = spaces.Dict({
             'features': spaces.Box(-1.0, np.inf, (n, f), np.float32),
@@ -89,8 +97,9 @@ class ExitDecisionEnv(gym.Env):
                 for row in self.graph.cav_rows()}
 
     def simulate_step(self, commands: dict | None = None) -> tuple[StepResult, RewardVector]:
-        """One simulation step (new commands, or None to hold) and its reward vector, logged
-        in the episode log. ``step`` is made of these; the ROS bridge calls it directly."""
+        """One simulation step (new commands, or None to hold) and its learning reward vector;
+        the scoring reward's is logged in the episode log. ``step`` is made of these; the ROS
+        bridge calls it directly."""
         result = self.sim.step(commands)
         self._lane_changes.append(len(result.lane_changers))
         inputs = StepRewardInputs(result, self.sim.snapshot, sum(self._lane_changes))
@@ -98,6 +107,8 @@ class ExitDecisionEnv(gym.Env):
             self.step_inputs.append(inputs)
         vector = self.reward_fn.vector(inputs)
         self.episode_log.record(result, vector.total())
+        if self.learning_reward_fn is not self.reward_fn:
+            vector = self.learning_reward_fn.vector(inputs)
         return result, vector
 
     def step(self, action):
@@ -120,7 +131,7 @@ class ExitDecisionEnv(gym.Env):
             if result.terminated or result.truncated:
                 break
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
-        reward = float(scalar(per_row.sum(0) + shared, self.mode_weights))
+        reward = float(scalar(per_row.sum(0) + shared, self.learning_weights))
         info = {'step_results': results, 'reward_vector': (per_row, shared)}
         return self._observation(), reward, result.terminated, result.truncated and not result.terminated, info
 

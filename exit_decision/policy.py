@@ -92,6 +92,12 @@ class GraphPolicy:
         """One network for every mode: Q(s, a, w) takes the mode's weights."""
         return self.network.conditioned
 
+    @property
+    def measures(self) -> bool:
+        """Trained with our measures (shield, lane planner, demonstrations); False: a method
+        run as published, which drives with only the lanes that exist masked."""
+        return self.metadata.get('measures', True)
+
     def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
                  weights: np.ndarray | None = None) -> np.ndarray:
         """(N, A) Q values of the graph's rows, as this policy's method sees the traffic."""
@@ -138,14 +144,15 @@ def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapsh
 
 class PolicyController:
     """Greedy decisions of a policy under the shield (what evaluation and the node run);
-    ``weights``: the mode a conditioned policy decides for (changeable between decisions)."""
+    ``weights``: the mode a conditioned policy decides for (changeable between decisions).
+    A policy trained as published drives as it was trained: the bare shield, no planner."""
 
     def __init__(self, policy: GraphPolicy, shield: Shield, weights: np.ndarray | None = None,
                  planner: LanePlanner | None = None):
         torch.set_num_threads(1)   # one small forward per decision: threads only add contention
         self.policy = policy
-        self.shield = shield
-        self.planner = planner
+        self.shield = shield if policy.measures else shield.bare()
+        self.planner = planner if policy.measures else None
         self.name = policy.label
         if policy.conditioned and weights is None:
             raise PolicyError(f'{policy.path}: a mode-conditioned policy needs the mode weights to decide')

@@ -28,12 +28,13 @@ time on the road in the safety row (docs/design.md, "Reward", known defect).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from exit_decision.config import BaselineRewardConfig, MatrixRewardConfig, ModeConfig
+from exit_decision.config import (BaselineRewardConfig, IntentionRewardConfig, MatrixRewardConfig, ModeConfig,
+                                  RewardVariantConfig, TermsRewardConfig)
 from exit_decision.traffic import StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
@@ -263,11 +264,115 @@ class BaselineReward:
         return result
 
 
-RewardFunction = MatrixReward | BaselineReward
+def own_collisions(step: StepResult) -> tuple[dict[str, int], int]:
+    """Collisions per CAV in them, and the number with no CAV in them."""
+    per_cav: dict[str, int] = {}
+    for collision in step.collisions:
+        for vehicle_id, cls in ((collision.collider, collision.collider_class), (collision.victim, collision.victim_class)):
+            if cls == 'CAV':
+                per_cav[vehicle_id] = per_cav.get(vehicle_id, 0) + 1
+    return per_cav, sum(not c.involves_cav for c in step.collisions)
 
 
-def make_reward(config: MatrixRewardConfig | BaselineRewardConfig, step_length: float,
-                braking_threshold: float = -4.5) -> RewardFunction:
+class TermsReward:
+    """Papers 002 and 003: a weighted sum of each CAV's terms (the weights in the config; paper
+    002: safety / efficiency / lane change 0.5 / 0.4 / 0.1). Terms: a collision the CAV is in,
+    its normalised speed (v - v_min) / (lane limit - v_min) in [0, 1] and a constant per step on
+    the road, its lane changes, and once a clean exit (a CAV leaves the road only if it never
+    collided: colliders are removed). The vector holds the terms already weighted, so every
+    mode scores it the same, as the baseline's. Released CAVs earn nothing more."""
+
+    def __init__(self, config: TermsRewardConfig):
+        self.config = config
+
+    def weights(self, mode: ModeConfig) -> np.ndarray:
+        return np.ones((4, 2))
+
+    def vector(self, inputs: StepRewardInputs) -> RewardVector:
+        step, c = inputs.step, self.config
+        result = RewardVector()
+
+        def of(vehicle_id: str) -> np.ndarray:
+            return result.per_vehicle.setdefault(vehicle_id, np.zeros((4, 2)))
+
+        for vehicle in step.vehicles:
+            if vehicle.is_cav and vehicle.vehicle_id not in step.released:
+                v_min = c.v_min.highway if vehicle.on_highway else c.v_min.ramp
+                band = max(vehicle.lane_speed_limit - v_min, 1e-6)
+                of(vehicle.vehicle_id)[EFFICIENCY, INCENTIVE] += c.step_weight * (
+                    c.speed * float(np.clip((vehicle.speed - v_min) / band, 0.0, 1.0)) + c.step)
+        for vehicle_id in step.lane_changers:
+            if vehicle_id in result.per_vehicle:
+                of(vehicle_id)[COMFORT, PUNISHMENT] += c.lane_change
+        for arrival in step.arrivals:
+            if arrival.vehicle_class == 'CAV':
+                of(arrival.vehicle_id)[RESULT, INCENTIVE] += c.clean_exit
+        per_cav, without_cav = own_collisions(step)
+        for vehicle_id, count in per_cav.items():
+            of(vehicle_id)[SAFETY, PUNISHMENT] += c.collision * count
+        result.shared[SAFETY, PUNISHMENT] = c.collision * without_cav
+        return result
+
+
+class IntentionReward:
+    """Paper 001's reward (eq. 2-5), per CAV: the intention reward R_I, the crash reward
+    R_C = -(vehicles in its collisions) / 2 and the speed reward R_S = v / v_max - offset,
+    aggregated as w_I R_I R_S + w_C R_C where R_I > 0, else w_I R_I + w_C R_C (eq. 5).
+
+    R_I by where the CAV is (the paper's Fig. 6 gradient, on our road): ``on_route`` per step
+    in a lane from which the target exit is reached as planned (``RoadGeometry.route_lanes``)
+    or on the target ramp, ``off_route`` per step elsewhere, ``reached`` / ``missed`` once on
+    leaving by the target exit / another one. Per-step terms count per simulation step times
+    ``step_weight``. Released CAVs earn nothing more; every mode scores it the same."""
+
+    def __init__(self, config: IntentionRewardConfig, route_lanes: Callable[[float], range]):
+        self.config = config
+        self.route_lanes = route_lanes
+
+    def weights(self, mode: ModeConfig) -> np.ndarray:
+        return np.ones((4, 2))
+
+    def intention(self, vehicle: VehicleState) -> float:
+        on_route = vehicle.lane_index in self.route_lanes(vehicle.position) if vehicle.on_highway else True
+        return self.config.on_route if on_route else self.config.off_route
+
+    def vector(self, inputs: StepRewardInputs) -> RewardVector:
+        step, c = inputs.step, self.config
+        result = RewardVector()
+        per_cav, without_cav = own_collisions(step)
+        crash = {vehicle_id: -count for vehicle_id, count in per_cav.items()}   # 2 vehicles each, / 2
+        intention: dict[str, tuple[float, float]] = {}   # vehicle id -> (R_I, R_S), per step
+        for vehicle in step.vehicles:
+            if vehicle.is_cav and vehicle.vehicle_id not in step.released:
+                intention[vehicle.vehicle_id] = (c.step_weight * self.intention(vehicle),
+                                                 vehicle.speed / c.speed_max - c.speed_offset)
+        for arrival in step.arrivals:
+            if arrival.vehicle_class == 'CAV':
+                intention[arrival.vehicle_id] = (c.reached if arrival.reached_target else c.missed, 1.0)
+        for vehicle_id in intention.keys() | crash.keys():
+            r_i, r_s = intention.get(vehicle_id, (0.0, 0.0))
+            cell = result.per_vehicle.setdefault(vehicle_id, np.zeros((4, 2)))
+            if r_i > 0:
+                cell[RESULT, INCENTIVE] = c.intention_weight * r_i * r_s
+            else:
+                cell[RESULT, PUNISHMENT] = c.intention_weight * r_i
+            cell[SAFETY, PUNISHMENT] = c.collision_weight * crash.get(vehicle_id, 0)
+        result.shared[SAFETY, PUNISHMENT] = -c.collision_weight * without_cav
+        return result
+
+
+RewardFunction = MatrixReward | BaselineReward | TermsReward | IntentionReward
+
+
+def make_reward(config: RewardVariantConfig, step_length: float, braking_threshold: float = -4.5,
+                route_lanes: Callable[[float], range] | None = None) -> RewardFunction:
+    """The reward of a variant; paper 001's needs ``route_lanes`` (the road geometry's)."""
     if isinstance(config, BaselineRewardConfig):
         return BaselineReward(config)
+    if isinstance(config, TermsRewardConfig):
+        return TermsReward(config)
+    if isinstance(config, IntentionRewardConfig):
+        if route_lanes is None:
+            raise ValueError('the intention reward needs the road geometry\'s route lanes')
+        return IntentionReward(config, route_lanes)
     return MatrixReward(config, step_length, braking_threshold)

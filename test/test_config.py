@@ -82,6 +82,23 @@ def test_conditioning_on_an_unknown_mode_is_named(config_copy):
         load_project(config_copy)
 
 
+def test_a_published_row_naming_an_unknown_reward_is_named(config_copy):
+    edit(config_copy / 'training.yaml',
+         lambda d: d['methods']['dueling_ddqn_per']['published'].__setitem__('reward_variant', 'paper_999'))
+    with pytest.raises(ConfigError, match=r"methods\.dueling_ddqn_per\.published\.reward_variant: unknown 'paper_999'; known: .*paper_002"):
+        load_project(config_copy)
+
+
+def test_a_baseline_with_a_published_block_gets_its_published_row(project_config):
+    training = project_config.training
+    published = training.method('dqn_published')
+    assert (published.measures, published.reward_variant, published.encoder) == (False, 'paper_002', 'grid')
+    assert training.of_method('dqn_published').demonstrations.episodes == 0
+    assert training.method('dqn').measures and 'gqn_published' not in training.method_names
+    with pytest.raises(ConfigError, match="unknown method 'gqn_published'; known: .*dqn_published"):
+        training.method('gqn_published')
+
+
 def test_scenario_override_merges_over_the_base(tmp_path):
     override = tmp_path / 'dense.yaml'
     override.write_text('vehicle_classes:\n  HV1: {count: 33}\n')

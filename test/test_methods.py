@@ -120,3 +120,28 @@ def test_sgrl_training_env_lets_the_policy_drive_one_cav_at_a_time(config_dir):
     finally:
         env.close()
     assert most_cavs > 1 and most_controlled == 1, 'other CAVs are in the human block while one learns'
+
+
+@pytest.mark.parametrize('method, reward, kind', [('dqn_published', 'paper_002', 'terms'),
+                                                  ('sgrl_published', 'paper_001', 'intention')])
+def test_a_baseline_as_published_learns_its_papers_reward_without_our_measures(method, reward, kind, config_dir,
+                                                                               tmp_path):
+    config = load_project(config_dir, overrides=[TINY])
+    trainer = Trainer(config, method, 'CONP', 0, tmp_path / 'run')
+    policy = load_policy(trainer.run(episodes=1, progress=False))
+    assert len(trainer.demos) == 0 and trainer.state.updates > 0, 'it learnt from its own experience alone'
+    assert trainer.env.learning_reward_fn.config.kind == kind, 'it learnt from its paper\'s reward'
+    assert trainer.env.reward_fn.config.kind == 'matrix', 'its returns are scored under the mode, as every method\'s'
+    assert (policy.metadata['measures'], policy.metadata['reward_variant']) == (False, reward)
+    env = trainer.env.__class__(config, mode='CONP')
+    try:
+        controller = PolicyController(policy, env.shield, planner=env.planner)   # what evaluation and the node run
+        layers = controller.shield.config
+        assert not (layers.lane_gap or layers.stop_capable or layers.human_follower_braking or layers.gap_reservation)
+        assert controller.planner is None and env.planner is not None
+        env.reset(seed=10_000)
+        while not env.graph.cav_mask.any():
+            env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
+        assert controller.decide(env.graph, env.sim.snapshot.vehicles).actions, 'the checkpoint decides'
+    finally:
+        env.close()

@@ -6,8 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from exit_decision.reward import (BaselineReward, MatrixReward, StepRewardInputs, check_weight_input,
-                                  mode_weights, scalar, weight_input)
+from exit_decision.reward import (BaselineReward, IntentionReward, MatrixReward, StepRewardInputs, TermsReward,
+                                  check_weight_input, mode_weights, scalar, weight_input)
 from exit_decision.traffic import Arrival, Collision, StepResult, TrafficSnapshot
 
 from conftest import make_vehicle
@@ -143,6 +143,59 @@ def test_baseline_reward(project_config):
     total = reward.vector(inputs(step, 2)).total()
     for mode in ('AGGI', 'CONP'):
         assert scalar(total, reward.weights(project_config.mode(mode))) == pytest.approx(expected)
+
+
+def per_cav_scores(reward, step, config):
+    """Each CAV's score and the shared one, the same under every mode (a paper's reward has none)."""
+    vector = reward.vector(inputs(step))
+    scores = []
+    for mode in ('AGGI', 'CONP'):
+        weights = reward.weights(config.mode(mode))
+        scores.append(({vid: scalar(v, weights) for vid, v in vector.per_vehicle.items()},
+                       scalar(vector.shared, weights)))
+    assert scores[0] == scores[1]
+    return scores[0]
+
+
+def test_paper_002_reward_weighs_safety_efficiency_and_lane_changes(project_config):
+    c = project_config.reward('paper_002')
+    assert (c.collision, c.speed, c.lane_change) == (-0.5, 0.4, -0.1), 'the paper\'s 0.5 / 0.4 / 0.1'
+    fast = make_vehicle('fast', 'CAV', speed=25.0)                      # at the lane limit: 1
+    slow = make_vehicle('slow', 'CAV', speed=17.5, lane=1)              # half way in [10, 25]: 0.5
+    step = step_of([fast, slow, make_vehicle('gone', 'CAV', speed=25.0)], lane_changers=['slow', 'h'],
+                   collisions=[Collision('fast', 'h', 'CAV', 'HV1'), Collision('a', 'b', 'HV1', 'HV2')],
+                   released=['gone'])
+    own, shared = per_cav_scores(TermsReward(c), step, project_config)
+    assert own == pytest.approx({'fast': 0.2 * 0.4 * 1.0 - 0.5, 'slow': 0.2 * 0.4 * 0.5 - 0.1})
+    assert shared == pytest.approx(-0.5), 'a collision without a CAV is shared'
+
+
+def test_paper_003_reward_pays_steps_and_a_clean_exit(project_config):
+    c = project_config.reward('paper_003')
+    ramp = make_vehicle('cav', 'CAV', speed=5.0, edge='Exit_1', limit=15.0)   # at the ramp's v_min: 0
+    step = step_of([ramp], arrivals=[Arrival('x', 'CAV', 'Exit_0', False)])
+    own, _ = per_cav_scores(TermsReward(c), step, project_config)
+    assert own == pytest.approx({'cav': 0.2 * c.step, 'x': c.clean_exit}), 'the task is no term of it'
+
+
+def test_paper_001_reward_is_eq_5_on_the_intention_gradient(project_config):
+    c = project_config.reward('paper_001')
+    reward = IntentionReward(c, lambda position: range(1, 3) if position < 150 else range(0, 1))
+    on = make_vehicle('on', 'CAV', lane=1, position=50.0, speed=24.0)     # R_S = 24/30 - 0.3 = 0.5
+    off = make_vehicle('off', 'CAV', lane=0, position=50.0, speed=24.0)
+    late = make_vehicle('late', 'CAV', lane=2, position=200.0, speed=24.0)
+    ramp = make_vehicle('ramp', 'CAV', edge='Exit_1', speed=9.0, limit=15.0)   # R_S = 0: R_I > 0 pays nothing
+    step = step_of([on, off, late, ramp], arrivals=[Arrival('done', 'CAV', 'Exit_1', True),
+                                                    Arrival('lost', 'CAV', 'Highway_2', False)],
+                   collisions=[Collision('on', 'h', 'CAV', 'HV1')])
+    own, shared = per_cav_scores(reward, step, project_config)
+    assert own == pytest.approx({
+        'on': 1.0 * (0.2 * 1.0) * 0.5 + 2.0 * -1.0,     # w_I R_I R_S + w_C R_C, R_C = -(2 vehicles) / 2
+        'off': 1.0 * (0.2 * -1.0),                      # R_I <= 0: w_I R_I
+        'late': 1.0 * (0.2 * -1.0),
+        'ramp': 0.0,
+        'done': 1.0 * 2.0 * 1.0, 'lost': -2.0})
+    assert shared == 0.0
 
 
 @pytest.mark.parametrize('weights, reason', [

@@ -57,6 +57,12 @@ class Shield:
         """The shield of a project config: an action is held for one decision interval."""
         return cls(config.env.shield, grid, geometry, config.env.decision_interval * config.scenario.step_length)
 
+    def bare(self) -> Shield:
+        """This shield with every switchable mask off: only lanes that exist (what a method run
+        as published drives with)."""
+        layers = {'lane_gap': False, 'gap_reservation': False, 'stop_capable': False, 'human_follower_braking': False}
+        return Shield(self.config.model_copy(update=layers), self.grid, self.geometry, self.horizon)
+
     # --- one vehicle -----------------------------------------------------------------------
 
     def leader(self, vehicle: VehicleState, lane: int, snapshot: TrafficSnapshot):

@@ -26,7 +26,7 @@ from functools import partial
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
 from tqdm import tqdm
 
 from exit_decision.actions import ActionGrid
@@ -260,13 +260,31 @@ class TrainingRun:
 
     def done(self, out_dir: Path, config: ProjectConfig) -> bool:
         """Finished (timing.json is the trainer's last file: an interrupted run has none) with
-        this config (another budget or setting: train again)."""
+        the settings this method depends on (another budget or setting: train again)."""
         directory = self.directory(out_dir)
         if not ((directory / 'timing.json').is_file() and (directory / 'policy.pt').is_file()):
             return False
         recorded = json.loads((directory / 'config.json').read_text())
-        return (recorded['episodes'], recorded['config']) == (config.training.episodes,
-                                                             json.loads(json.dumps(config.model_dump())))
+        try:
+            then = ProjectConfig.model_validate(recorded['config'])
+            return (recorded['episodes'], run_settings(then, self.method)) == (
+                config.training.episodes, run_settings(config, self.method))
+        except (ValidationError, ConfigError):   # a config of another release, or without this method
+            return False
+
+
+def run_settings(config: ProjectConfig, method: str) -> dict:
+    """What a training run of ``method`` depends on: the scenario, graph, env and modes, the
+    rewards it learns and is scored with, its merged training settings and its own; another
+    method's settings or an unused reward variant do not count."""
+    settings = config.training.method(method)
+    rewards = sorted({config.env.reward_variant, settings.reward_variant or config.env.reward_variant})
+    return json.loads(json.dumps({
+        'scenario': config.scenario.model_dump(), 'graph': config.graph.model_dump(), 'env': config.env.model_dump(),
+        'modes': {name: mode.model_dump() for name, mode in config.modes.items()},
+        'rewards': {name: config.reward(name).model_dump() for name in rewards},
+        'training': config.training.of_method(method).model_dump(exclude={'methods'}),
+        'method': settings.model_dump(exclude={'published'})}))
 
 
 def load_comparison_training(path: Path, config: ProjectConfig,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from exit_decision.config import PUBLISHED_SUFFIX
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult
 from exit_decision.evaluation.plots import plt, read_csv, rolling, save
 from exit_decision.evaluation.report import TEACHER, comparison_markdown, paired_comparison
@@ -98,8 +99,11 @@ def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, s
     """Each claim whose two sides were evaluated: the paired return difference and its verdict
     (a learned side with fewer than MIN_SEEDS_FOR_CLAIM training seeds: no verdict)."""
     lines = []
-    claims = [*CLAIMS, *((f'{method} > {TEACHER} (learned > rule-based)', method, TEACHER)
-                         for method in runs if method not in (TEACHER, 'sumo'))]
+    claims = [*CLAIMS,
+              *((f'{method} with our measures > as published', method, method + PUBLISHED_SUFFIX)
+                for method in runs if method + PUBLISHED_SUFFIX in runs),
+              *((f'{method} > {TEACHER} (learned > rule-based)', method, TEACHER)
+                for method in runs if method not in (TEACHER, 'sumo'))]
     for statement, method, other in claims:
         if mode in runs.get(method, {}) and mode in runs.get(other, {}):
             mean, low, high = paired_difference(runs[method][mode], runs[other][mode], 'reward')
@@ -208,9 +212,13 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
     if learned:
         sections += [
             (f'Learned methods are trained on the base scenario for the mode {training_mode} with '
-             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget and our measures (shield, '
-             f'decision interval, lane planner, demonstrations); a method\'s episodes are averaged over its '
-             f'training seeds per test seed.'),
+             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of RL episodes and our '
+             f'measures (shield, decision interval, lane planner, demonstrations of the rule-based driver and '
+             f'pre-training on them); a method\'s episodes are averaged over its training seeds per test seed. '
+             f'A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '
+             f'(config/reward.yaml) with its paper\'s exploration and no demonstrations, and drives, in training '
+             f'and here, with only the lanes that exist masked and no lane planner; only the decision interval '
+             f'stays ours. Every row is scored under the modes of the reward function matrix.'),
             '**Budget** (merged over config/training.yaml for every method alike):\n\n```json\n'
             + json.dumps(budget or {}, indent=2) + '\n```']
     if left_out:

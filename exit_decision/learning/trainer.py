@@ -100,15 +100,20 @@ class Trainer:
         self.training = t = config.training.of_method(algorithm)
         self.out_dir = out_dir
         self.conditioned = mode == CONDITIONED
-        if self.conditioned and config.reward(config.env.reward_variant).kind != 'matrix':
-            raise ValueError(f'the conditioned network needs a matrix reward, not {config.env.reward_variant!r}')
+        learning_reward = method.reward_variant or config.env.reward_variant
+        if self.conditioned and config.reward(learning_reward).kind != 'matrix':
+            raise ValueError(f'the conditioned network needs a matrix reward, not {learning_reward!r}')
         c = t.conditioning
         if not self.conditioned:
             config.mode(mode)   # an unknown mode fails here, naming the known ones
         self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
         # SGRL trains one CAV at a time (the others drive as humans); validation runs every CAV
-        self.env = ExitDecisionEnv(config, mode=self.validation_modes[0], single_agent=method.single_agent)
-        self.grid, self.shield = self.env.actions, self.env.shield
+        self.env = ExitDecisionEnv(config, mode=self.validation_modes[0], single_agent=method.single_agent,
+                                   learning_reward=method.reward_variant)
+        # as published: the bare shield and no planner (the env's serve the teacher)
+        self.grid = self.env.actions
+        self.shield = self.env.shield if method.measures else self.env.shield.bare()
+        self.planner = self.env.planner if method.measures else None
         self.rng = np.random.default_rng(seed)
         self.sampler = WeightSampler(config, list(c.modes), c.exact_share, c.concentration, self.rng) \
             if self.conditioned else None
@@ -184,7 +189,7 @@ class Trainer:
             else:
                 q = q_values(self.agent.online, observed, weights)
                 decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (
-                    self.explore(mask) if self.rng.random() < epsilon else None), planner=env.planner)
+                    self.explore(mask) if self.rng.random() < epsilon else None), planner=self.planner)
             actions, masks = self.decision_arrays(graph, decision)
             _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, keep))
             own, shared = info['reward_vector']
@@ -209,7 +214,7 @@ class Trainer:
 
     def final_record(self) -> DecisionRecord:
         """The last state, with the masks its CAVs would choose under (for bootstrapping)."""
-        graph, planner = self.env.graph, self.env.planner
+        graph, planner = self.env.graph, self.planner
         snapshot = self.env.sim.snapshot
         masks = np.zeros((graph.num_nodes, self.grid.size), bool)
         for vehicle_id, row in graph.row_of().items():
@@ -250,8 +255,8 @@ class Trainer:
             weights = self.sampler.sample(size)
             batch['weights'] = weights.astype(np.float32)
             multipliers = weights_of_input(weights)
-        else:   # the variant's own weights of the mode (the baseline reward has no modes)
-            multipliers = np.broadcast_to(self.env.mode_weights, (size, 4, 2))
+        else:   # the learning reward's weights of the mode (a baseline's reward has no modes)
+            multipliers = np.broadcast_to(self.env.learning_weights, (size, 4, 2))
         batch['rewards'] = scored_rewards(batch, multipliers, t.credit) * np.float32(t.reward_scale)
         del batch['returns'], batch['global_returns']
         return batch, np.concatenate(is_demo), importance if self.priorities is not None else None, indices
@@ -285,7 +290,8 @@ class Trainer:
             'algorithm': self.algorithm, 'paper': self.method.paper, 'encoder': self.encoder_settings,
             'mode': self.mode, 'seed': self.seed,
             'conditioned': self.conditioned, 'modes': self.validation_modes,
-            'reward_variant': c.env.reward_variant, 'feature_set': c.graph.feature_set,
+            'reward_variant': self.method.reward_variant or c.env.reward_variant, 'measures': self.method.measures,
+            'feature_set': c.graph.feature_set,
             'num_nodes': c.graph.max_vehicles, 'num_features': self.shape.num_features,
             'decision_interval': c.env.decision_interval, 'action_grid': c.env.actions.model_dump(),
             'multi_step': self.multi_step, 'git_revision': git_revision(),
@@ -365,7 +371,8 @@ class Trainer:
         if resume is None and init is None and len(self.demos):
             self.pretrain()
         clock['pretraining'] = time.monotonic()
-        self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
+        if demo.pretrain_updates or init is not None:   # a network that learnt already is fine-tuned
+            self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
         task = ValidationTask(self.config, self.validation_modes, self.validation_seeds())
         with Validator(task, self.training.validation.parallel, self.env) as validator:
             if self.state.episode == 0:
