@@ -354,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(train)
     train.add_argument('--algorithm', default='mdgqn',
                        help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
-                            'sgrl, mgrl, ngrl, and each baseline as published (<name>_published, e.g. dqn_published)')
+                            'dueling_ddqn, sgrl, mgrl, ngrl, and each baseline as published (<name>_published, e.g. dqn_published)')
     train.add_argument('--mode', default='conditioned',
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')

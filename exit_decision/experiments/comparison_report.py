@@ -33,6 +33,8 @@ CLAIMS = (
     ('Dueling DQN > DQN (paper 002)', 'dueling_dqn', 'dqn'),
     ('Dueling DDQN + PER (6 nearest) > Dueling DQN (grid) (paper 003; PER, double target, state: together)',
      'dueling_ddqn_per', 'dueling_dqn'),
+    ('PER helps: Dueling DDQN + PER > Dueling DDQN, both on the 6 nearest (paper 003)', 'dueling_ddqn_per',
+     'dueling_ddqn'),
     ('SGRL > MGRL (paper 001)', 'sgrl', 'mgrl'),
     ('SGRL > NGRL (paper 001)', 'sgrl', 'ngrl'),
     ('MGRL (GCN) > NGRL (no GCN) (paper 001)', 'mgrl', 'ngrl'),
