@@ -69,11 +69,12 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
     config = load_project(config_dir)
     interval, road = config.env.decision_interval, config.scenario.road
     assert [m.step for m in topics[GRAPH_TOPIC]] == list(range(0, steps + 1, interval)), 'graphs of decision steps only'
-    # each as the training's builder, fed every step, makes it: the rows are kept between decisions
+    # each as the environment of training and evaluation makes it: its builder fed the decision steps
     builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit, road.lane_count)
-    every_step = {m.step: builder.build(states_from_msg(m, road.names.sections)) for m in topics[STATES_TOPIC]}
+    as_trained = {m.step: builder.build(states_from_msg(m, road.names.sections)) for m in topics[STATES_TOPIC]
+                  if m.step % interval == 0}
     for m in topics[GRAPH_TOPIC]:
-        graph, expected = graph_from_msg(m), every_step[m.step]
+        graph, expected = graph_from_msg(m), as_trained[m.step]
         assert graph.vehicle_ids == expected.vehicle_ids and np.array_equal(graph.features, expected.features) \
             and np.array_equal(graph.adjacency, expected.adjacency), f'graph of step {m.step}'
     modes = [m.mode for m in topics[COMMANDS_TOPIC]]
@@ -373,10 +374,11 @@ def bad_messages(latest: VehicleStateArray) -> list:
 
     episode, step = latest.episode, latest.step
     vehicles = states_from_msg(latest, ('Highway_0', 'Highway_1', 'Highway_2')) or [make_vehicle('HV1_0', position=20.0)]
-    # bad fields on a step the gates accept as next (9 ahead: within their gap of 10, still ahead of
-    # the stack when this process lags it by a few steps), so the field checks, not the sequence, refuse them
+    # bad fields on a decision step the gates accept as next (the second after this one's: within
+    # their gap of two decision steps, still ahead of the stack when this process lags it by up to
+    # a decision interval), so the field checks, not the sequence, refuse them
     states = [states_to_msg([dataclasses.replace(vehicles[0], **change), *vehicles[1:]], episode=episode,
-                            step=step + 9, step_length=0.1, frame_id='fuzz')
+                            step=step - step % 5 + 10, step_length=0.1, frame_id='fuzz')
               for change in ({'lane_index': 127}, {'lane_index': -128}, {'lane_index': 3}, {'lane_index': -1},
                              {'speed': math.nan}, {'position': 3e38})]
     states[-1].vehicles[0].vehicle_class = 9                  # no such class
@@ -529,9 +531,7 @@ def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
                 stamp = 1_000_000_000 + step * 100_000_000
                 msg = states_to_msg(result.vehicles, episode=0, step=result.step, step_length=0.1)
                 writer.write(states, stamp, serialize_message(msg))
-                if result.step % config.env.decision_interval:
-                    builder.slots(result.vehicles)
-                else:
+                if result.step % config.env.decision_interval == 0:
                     writer.write(graphs, stamp, serialize_message(graph_to_msg(
                         builder.build(result.vehicles), feature_set=config.graph.feature_set, episode=0,
                         step=result.step, stamp=msg.header.stamp)))

@@ -1,9 +1,9 @@
 """graph_builder: vehicle states in, the traffic graph out, with the training's graph module.
 
 A graph is built and published for the decision steps only (every ``decision_interval``
-steps: the decision node's and the replay's only use; the rest would be work nobody takes).
-The vehicles of every step still hold their slots (rows) as the training's builder, fed every
-step, gives them: on the steps between, only the slots are kept up to date.
+steps), from their states alone, exactly as the environment builds it in training and
+evaluation: the same rows (slots) for the same vehicles. The states of the steps between are
+not even decoded (their (episode, step) is read from the raw message): nobody uses their graph.
 
 Slots are kept per episode: they and the step sequence start afresh on the bridge's (or the
 player's) EVENT_STARTED, and only then. A state message is taken only if it can follow the
@@ -33,8 +33,8 @@ class GraphBuilderNode(Node):
         geometry = RoadGeometry.of(road)
         self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)
         self.limits = StateLimits.of(config, geometry)
-        self.gate = StepGate(config.scenario.max_steps)
         self.interval = config.env.decision_interval
+        self.gate = StepGate(config.scenario.max_steps, max_gap=2 * self.interval)   # one decision step may go missing
         self.feature_set = config.graph.feature_set
         self.diagnostics = Diagnostics(self, 'graph_builder')
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
@@ -49,8 +49,10 @@ class GraphBuilderNode(Node):
             self.builder.reset()
 
     def on_states(self, raw: bytes) -> None:
-        # (episode, step) first: a message that cannot follow (a flood) is refused before any decoding
+        # (episode, step) first: other steps, and a message that cannot follow (a flood), cost no decoding
         episode, step = episode_and_step(raw)
+        if step % self.interval:
+            return
         if episode != self.gate.episode:
             take_waiting(self.events)   # its EVENT_STARTED came first (the bridge waits for it to be acknowledged)
         reason = self.gate.refuse(episode, step)
@@ -58,19 +60,12 @@ class GraphBuilderNode(Node):
             self.diagnostics.reject('out_of_sequence_states', 'states', reason)
             return
         msg = deserialize_message(raw, VehicleStateArray)
-        graph = None
         try:
-            vehicles = checked_states(msg, self.limits)
-            if msg.step % self.interval:
-                self.builder.slots(vehicles)   # between decisions: the rows only
-            else:
-                graph = self.builder.build(vehicles)
+            graph = self.builder.build(checked_states(msg, self.limits))
         except (InputError, GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
-        self.diagnostics.count('skipped_steps', self.gate.accept(msg.step))
-        if graph is None:
-            return
+        self.diagnostics.count('skipped_decision_steps', self.gate.accept(msg.step) // self.interval)
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=msg.episode,
                                             step=msg.step, stamp=msg.header.stamp))
         self.diagnostics.count('graphs')

@@ -24,6 +24,7 @@ from rcl_interfaces.srv import SetParameters
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
 from exit_decision.ros.stack_nodes import BRIDGE, plan
+from exit_decision.step_gaps import episode_and_step
 
 
 def executable(name: str) -> list[str]:
@@ -120,11 +121,11 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
             state['ended'] += 1
             run.episodes.append(metrics_from_event(msg))
 
-    def on_states(msg: VehicleStateArray) -> None:
-        state['step'], state['episode'] = msg.step, msg.episode
+    def on_states(raw: bytes) -> None:   # the progress only: (episode, step) read without decoding
+        state['episode'], state['step'] = episode_and_step(raw)
 
     node.create_subscription(EpisodeEvent, EPISODE_TOPIC, on_event, EVENT_QOS)
-    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS)
+    node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     client = node.create_client(SetParameters, '/decision_node/set_parameters')
     try:
         for name in nodes:

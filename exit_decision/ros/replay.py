@@ -68,9 +68,8 @@ class ReplayReport:
 def rebuilt_graphs(config: ProjectConfig, states: Mapping[tuple[int, int], object],
                    wanted: set[tuple[int, int]]) -> dict[tuple[int, int], TrafficGraph]:
     """The graphs of the ``wanted`` steps that the graph builder makes from the recorded states,
-    fed every step of an episode in order (slots are kept per episode; on the other steps, as
-    the node between decisions, only the slots). A step it refuses (the node would have
-    published no graph) is left out."""
+    fed the decision steps of an episode in order, as the node and the environment (slots are
+    kept per episode). A step it refuses (the node would have published no graph) is left out."""
     road = config.scenario.road
     builder = GraphBuilder(config.graph, RoadGeometry.of(road).road_length, road.highway_speed_limit, road.lane_count)
     graphs, episode = {}, None
@@ -78,12 +77,12 @@ def rebuilt_graphs(config: ProjectConfig, states: Mapping[tuple[int, int], objec
         if key[0] != episode:
             builder.reset()
             episode = key[0]
+        if key[1] % config.env.decision_interval:
+            continue
         try:
-            vehicles = states_from_msg(states[key], road.names.sections)
+            graph = builder.build(states_from_msg(states[key], road.names.sections))
             if key in wanted:
-                graphs[key] = builder.build(vehicles)
-            else:
-                builder.slots(vehicles)
+                graphs[key] = graph
         except (GraphInputError, GraphCapacityError):
             continue
     return graphs
