@@ -70,12 +70,12 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
             elapsed = time.perf_counter() - started
             timings[label] = (steps / elapsed, elapsed / episodes)
             lines.append(f'  env steps/s {label:<17} {steps / elapsed:8.0f}   ({elapsed / episodes:.2f} s per episode)')
-        batch, demo, _, _ = trainer.sample()
+        sampled = trainer.sample()
         for _ in range(10):
-            trainer.agent.update(batch, demo, 1.0)
+            trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
         count, started = 200, time.perf_counter()
         for _ in range(count):
-            trainer.agent.update(batch, demo, 1.0)
+            trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
         lines.append(f'  gradient update (batch {training.batch_size}): '
                      f'{(time.perf_counter() - started) / count * 1000:.2f} ms')
         n, f = config.graph.max_vehicles, trainer.shape.num_features

@@ -61,6 +61,16 @@ EPISODE_SEED_STRIDE = 1_000_000
 CONDITIONED = 'conditioned'
 
 
+@dataclass(frozen=True)
+class SampledBatch:
+    """One update's batch: the arrays the agent learns from, which rows are demonstrations,
+    the importance weights (prioritized replay; None: uniform) and the replay indices drawn."""
+    arrays: dict[str, np.ndarray]
+    is_demo: np.ndarray
+    importance: np.ndarray | None
+    indices: np.ndarray
+
+
 @dataclass
 class TrainingState:
     episode: int = 0
@@ -227,10 +237,9 @@ class Trainer:
 
     # --- learning ---------------------------------------------------------------------------
 
-    def sample(self) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray | None, np.ndarray]:
+    def sample(self) -> SampledBatch:
         """A batch from the agent's replay and the demonstrations, each transition scored
-        under mode weights (the run's mode, or drawn per transition when conditioned):
-        (arrays, is demonstration, importance weights or None, the replay indices drawn)."""
+        under mode weights (the run's mode, or drawn per transition when conditioned)."""
         t = self.training
         demo_count = 0
         if len(self.demos):
@@ -259,14 +268,15 @@ class Trainer:
             multipliers = np.broadcast_to(self.env.learning_weights, (size, 4, 2))
         batch['rewards'] = scored_rewards(batch, multipliers, t.credit) * np.float32(t.reward_scale)
         del batch['returns'], batch['global_returns']
-        return batch, np.concatenate(is_demo), importance if self.priorities is not None else None, indices
+        return SampledBatch(batch, np.concatenate(is_demo), importance if self.priorities is not None else None,
+                            indices)
 
     def learn_step(self) -> dict[str, float]:
         """One gradient update on a sampled batch; prioritized replay learns the new priorities."""
-        batch, demo, importance, indices = self.sample()
-        losses, errors = self.agent.update(batch, demo, self.margin_weight(), importance)
-        if self.priorities is not None and len(indices):
-            self.priorities.update(indices, errors[:len(indices)])
+        sampled = self.sample()
+        losses, errors = self.agent.update(sampled.arrays, sampled.is_demo, self.margin_weight(), sampled.importance)
+        if self.priorities is not None and len(sampled.indices):
+            self.priorities.update(sampled.indices, errors[:len(sampled.indices)])
         self.state.updates += 1
         return losses
 
