@@ -234,17 +234,20 @@ class MatrixReward:
         return RewardVector({vid: v * factor for vid, v in own.items()}, shared * factor)
 
 
-class BaselineReward:
-    """Dong et al.'s reward (paper 000's baseline): intention + speed - lane change - collision.
+class ModelessReward:
+    """A reward without modes: its vector holds its terms already weighted, so every mode
+    scores it the same (weights of ones)."""
 
-    Its vector holds the four terms already weighted (one entry each), so every mode scores
-    it the same: the baseline has no modes."""
-
-    def __init__(self, config: BaselineRewardConfig):
+    def __init__(self, config):
         self.config = config
 
     def weights(self, mode: ModeConfig) -> np.ndarray:
         return np.ones((4, 2))
+
+
+class BaselineReward(ModelessReward):
+    """Dong et al.'s reward (paper 000's baseline): intention + speed - lane change - collision,
+    one entry each of the vector."""
 
     def vector(self, inputs: StepRewardInputs) -> RewardVector:
         step, c = inputs.step, self.config
@@ -274,19 +277,14 @@ def own_collisions(step: StepResult) -> tuple[dict[str, int], int]:
     return per_cav, sum(not c.involves_cav for c in step.collisions)
 
 
-class TermsReward:
+class TermsReward(ModelessReward):
     """Papers 002 and 003: a weighted sum of each CAV's terms (the weights in the config; paper
     002: safety / efficiency / lane change 0.5 / 0.4 / 0.1). Terms: a collision the CAV is in,
     its normalised speed (v - v_min) / (lane limit - v_min) in [0, 1] and a constant per step on
     the road, its lane changes, and once a clean exit (a CAV leaves the road only if it never
-    collided: colliders are removed). The vector holds the terms already weighted, so every
-    mode scores it the same, as the baseline's. Released CAVs earn nothing more."""
+    collided: colliders are removed). Released CAVs earn nothing more."""
 
-    def __init__(self, config: TermsRewardConfig):
-        self.config = config
-
-    def weights(self, mode: ModeConfig) -> np.ndarray:
-        return np.ones((4, 2))
+    config: TermsRewardConfig
 
     def vector(self, inputs: StepRewardInputs) -> RewardVector:
         step, c = inputs.step, self.config
@@ -314,7 +312,7 @@ class TermsReward:
         return result
 
 
-class IntentionReward:
+class IntentionReward(ModelessReward):
     """Paper 001's reward (eq. 2-5), per CAV: the intention reward R_I, the crash reward
     R_C = -(vehicles in its collisions) / 2 and the speed reward R_S = v / v_max - offset,
     aggregated as w_I R_I R_S + w_C R_C where R_I > 0, else w_I R_I + w_C R_C (eq. 5).
@@ -323,14 +321,11 @@ class IntentionReward:
     in a lane from which the target exit is reached as planned (``RoadGeometry.route_lanes``)
     or on the target ramp, ``off_route`` per step elsewhere, ``reached`` / ``missed`` once on
     leaving by the target exit / another one. Per-step terms count per simulation step times
-    ``step_weight``. Released CAVs earn nothing more; every mode scores it the same."""
+    ``step_weight``. Released CAVs earn nothing more."""
 
     def __init__(self, config: IntentionRewardConfig, route_lanes: Callable[[float], range]):
-        self.config = config
+        super().__init__(config)
         self.route_lanes = route_lanes
-
-    def weights(self, mode: ModeConfig) -> np.ndarray:
-        return np.ones((4, 2))
 
     def intention(self, vehicle: VehicleState) -> float:
         on_route = vehicle.lane_index in self.route_lanes(vehicle.position) if vehicle.on_highway else True
