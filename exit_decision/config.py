@@ -333,10 +333,10 @@ class MethodConfig(Strict):
     single_agent: bool = False       # SGRL: one CAV learns, the others drive as humans in training
     training: dict = {}              # the method's own settings over this file's (e.g. paper 003's)
     published: PublishedConfig | None = None   # adds the method <name>_published
-    # set on a <name>_published method, not in the file: trained with its paper's reward,
-    # without our measures (only lanes that exist are masked; no lane planner, no demonstrations)
+    # false (as on every <name>_published): without our measures, i.e. only lanes that exist
+    # masked, no lane planner, no demonstrations
     measures: bool = True
-    reward_variant: str | None = None   # None: config/env.yaml's
+    reward_variant: str | None = None   # the reward it learns from; None: config/env.yaml's
 
     def as_published(self) -> MethodConfig:
         """The method as its paper published it (``published`` must be set)."""
@@ -559,10 +559,13 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
                             ('published.training', settings.published.training if settings.published else {})):
             if 'methods' in values:
                 raise ConfigError(f'{sources["training"]}: methods.{method}.{key}: may not hold methods')
-        if settings.published and settings.published.reward_variant not in config.rewards:
-            raise ConfigError(f'{sources["training"]}: methods.{method}.published.reward_variant: unknown '
-                              f'{settings.published.reward_variant!r}; known: {", ".join(config.rewards)}')
     for method in config.training.method_names:
+        learns_from = config.training.method(method).reward_variant
+        if learns_from is not None and learns_from not in config.rewards:
+            key = (f'{method.removesuffix(PUBLISHED_SUFFIX)}.published' if method not in config.training.methods
+                   else method)
+            raise ConfigError(f'{sources["training"]}: methods.{key}.reward_variant: unknown {learns_from!r}; '
+                              f'known: {", ".join(config.rewards)}')
         try:
             config.training.of_method(method)
         except ConfigError as error:

@@ -52,12 +52,12 @@ class ExitDecisionEnv(gym.Env):
         self.planner = LanePlanner.of(config, self.shield)   # for learned policies; None: off
         # reward_fn scores the episode log (every metric); the agent learns from learning_reward_fn
         # (``learning_reward``: a baseline's own reward, e.g. a paper's; default: the same)
+        def reward_of(variant: str):
+            return make_reward(config.reward(variant), scenario.step_length, scenario.emergency_braking_threshold,
+                               self.sim.geometry.route_lanes)
         scored = reward_variant or config.env.reward_variant
-        self.reward_fn, self.learning_reward_fn = (
-            make_reward(config.reward(variant), scenario.step_length, scenario.emergency_braking_threshold,
-                        self.sim.geometry.route_lanes) for variant in (scored, learning_reward or scored))
-        if (learning_reward or scored) == scored:
-            self.learning_reward_fn = self.reward_fn
+        self.reward_fn = reward_of(scored)
+        self.learning_reward_fn = self.reward_fn if learning_reward in (None, scored) else reward_of(learning_reward)
         self.mode_weights = self.reward_fn.weights(config.mode(self.mode))
         self.learning_weights = self.learning_reward_fn.weights(config.mode(self.mode))
         n, f = config.graph.max_vehicles, self.graph_builder.num_features
