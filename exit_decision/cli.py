@@ -180,12 +180,19 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.metrics import markdown_table, summarize
     from exit_decision.ros.launcher import free_bag_path, run_stack
 
-    matrix = load_project(args.config_dir).mode_matrix   # fail early, with the key, on a bad config
+    from exit_decision.policy_names import CONDITIONED_SUFFIX
+    from exit_decision.ros.decision_node import ALGORITHMS
+
+    config = load_project(args.config_dir)   # fail early, with the key, on a bad config
+    matrix = config.mode_matrix
+    config.training.method(args.algorithm.removesuffix(CONDITIONED_SUFFIX))   # a known method, or one line naming them
     mode = args.mode or matrix.aggressive.punished
     switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
+    # another method than the shipped ones: the node loads its policies for the modes of this run only
+    modes = [] if args.algorithm in ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
-    run = run_stack(mode=mode, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
+    run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
                     bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
                     switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
@@ -395,8 +402,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
                             'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=int, default=300, help='step of the first episode to switch at')
-    stack.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default='mdgqn_conditioned',
-                       help='mdgqn_conditioned: one network for every mode (the mode switches its weights)')
+    stack.add_argument('--algorithm', default='mdgqn_conditioned',
+                       help='a learned method of config/training.yaml, <method>_conditioned for one network for every '
+                            'mode; shipped policies: mdgqn_conditioned, gqn, mdgqn (others: --policy-dir with '
+                            '<algorithm>_<mode>/policy.pt)')
     stack.add_argument('--episodes', type=int, default=1)
     stack.add_argument('--seed', type=int, default=10_000)
     stack.add_argument('--bag', type=Path, default=None, help='bag directory (default bags/exit_decision_<time>)')
@@ -409,7 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     _common(replay)
     replay.add_argument('bag', type=Path)
     replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
-    replay.add_argument('--algorithm', choices=['mdgqn_conditioned', 'gqn', 'mdgqn'], default=None)
+    replay.add_argument('--algorithm', default=None,
+                        help='replay with this learned method\'s policies in --policy-dir (default: the recorded one)')
     replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
     replay.add_argument('--policy-dir', type=Path, default=None)
     replay.add_argument('--rebuild-graph', action='store_true',

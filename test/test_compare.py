@@ -109,3 +109,35 @@ def test_compare_trains_a_learned_method_and_reports_it_with_its_curve(tmp_path,
     assert (out / 'comparison_learning_curves.png').stat().st_size > 0
     assert main(command) == 0, 'a rerun reuses the trained run and the done cells'
     assert 'training: 1 training runs: 0 run now, 1 already done' in capsys.readouterr().out
+
+
+def _episodes(**columns):
+    """Episode rows on test seeds 0..n-1 from per-metric value lists (other metrics 0)."""
+    from exit_decision.experiments.comparison_report import TABLE_METRICS
+    n = len(next(iter(columns.values())))
+    return [{'seed': float(i), **dict.fromkeys(TABLE_METRICS, 0.0), **{k: float(v[i]) for k, v in columns.items()}}
+            for i in range(n)]
+
+
+def test_the_page_names_the_winner_of_a_metric_only_when_its_lead_over_the_runner_up_is_resolved():
+    from exit_decision.experiments.comparison_report import winners_table
+    runs = {'a': {'CONP': _episodes(reward=[10, 11, 12, 13], p_collision_CAV=[0.1, 0.0, 0.1, 0.0])},
+            'b': {'CONP': _episodes(reward=[9, 10, 11, 12], p_collision_CAV=[0.0, 0.1, 0.0, 0.1])},
+            'c': {'CONP': _episodes(reward=[1, 2, 3, 4], p_collision_CAV=[0.5, 0.5, 0.5, 0.5])}}
+    rows = {line.split(' | ')[0].strip('| '): line for line in winners_table(runs, 'CONP').splitlines()}
+    assert '| a | 11.5 | b | +1 [+1, +1] | wins |' in rows['reward (higher)']
+    # a and b collide equally often, on other seeds: tied, whichever is listed best
+    assert 'tied with the runner-up' in rows['p_collision_CAV (lower)']
+    assert '| c |' not in rows['p_collision_CAV (lower)']
+
+
+def test_a_drop_under_a_variant_is_paired_by_test_seed_and_marked_when_resolved():
+    from exit_decision.experiments.comparison_report import drop_table
+    base = _episodes(reward=[10, 20, 30], p_CAV=[1, 1, 1])
+    per_variant = {'base': {'m': {'CONP': base}},
+                   'hard': {'m': {'CONP': _episodes(reward=[8, 18, 28], p_CAV=[1, 0.5, 1])}}}
+    row = drop_table(per_variant, 'base', 'CONP').splitlines()[-1]
+    # return: -2 on every seed (resolved although the seeds' returns spread 10..30); p_CAV: unresolved
+    assert row.startswith('| m | -0.167 [')
+    assert '/ -2 [-2, -2]*' in row
+    assert not row.split(' / ')[0].endswith('*')

@@ -22,6 +22,7 @@ from exit_decision.ros.replay import replay_decisions
 from exit_decision.scenario.geometry import RoadGeometry
 
 from ros_helpers import random_policies, small_config_dir, stop
+from test_training import TINY
 
 
 @pytest.fixture(scope='module')
@@ -92,6 +93,30 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
     assert other.matching < other.commands, 'the one conditioned network decides differently at another mode'
     per_mode = replay_decisions(bag, load_project(config_dir), policies, algorithm='mdgqn')
     assert per_mode.matching < per_mode.commands, 'a per-mode policy is another network'
+
+
+def test_the_stack_drives_with_another_method_as_published_and_the_replay_agrees(setup):
+    """A paper-002 grid-state DQN as published (its own encoder, the bare shield, no lane
+    planner), trained for an episode, drives the stack through `stack --algorithm`'s path; every
+    command it sent is what the offline controller decides on the recorded states."""
+    from exit_decision.learning.trainer import Trainer
+
+    root, config_dir = setup['root'], setup['config_dir']
+    config = load_project(config_dir, overrides=[TINY])
+    policies = root / 'other_policies'
+    trained = Trainer(config, 'dqn_published', 'CONP', 0, root / 'dqn_run').run(episodes=1, progress=False)
+    (policies / 'dqn_published_CONP').mkdir(parents=True)
+    (policies / 'dqn_published_CONP' / 'policy.pt').write_bytes(trained.read_bytes())
+    bag = root / 'dqn_bag'
+    run = run_stack(mode='CONP', modes=['CONP'], algorithm='dqn_published', episodes=1, seed=10_001, bag_path=bag,
+                    log_dir=root / 'dqn_logs', switch_to=None, config_dir=str(config_dir), policy_dir=str(policies),
+                    timeout=300, visualizer=False)
+    assert len(run.episodes) == 1 and all(code in (0, -2) for code in run.return_codes.values()), run.return_codes
+    commands = [msg for topic, _, _, msg in read_messages(bag, {COMMANDS_TOPIC})]
+    assert len(commands) == int(run.episodes[0]['steps']) // 5 + 1
+    assert {m.algorithm for m in commands} == {'dqn_published'} and any(m.commands for m in commands)
+    report = replay_decisions(bag, load_project(config_dir), policies)
+    assert report.commands > 0 and report.matching == report.commands, report.differences[:3]
 
 
 def test_mode_parameter_refuses_unknown_values_with_a_reason(setup):

@@ -20,8 +20,9 @@ from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
 
-REFERENCE_DRIVERS = ('sumo', 'rule_based')
-TEACHER = 'rule_based'
+TEACHER = 'rule_based'   # the neutral rule-based driver
+SUMO = 'sumo'           # SUMO's own IDM + LC2013 drivers, routed to the exit
+REFERENCE_DRIVERS = (SUMO, TEACHER)
 #: columns of the paired comparison with the teacher (difference run - teacher per seed)
 PAIRED_METRICS = ('reward', 'v_AVs', 'p_CAV', 'p_collision_CAV', 'N_braking')
 
@@ -80,9 +81,9 @@ def driver_runs(config: ProjectConfig, driver: str, modes: Sequence[str], seeds:
     its own environment: played once, scored under each mode."""
     name, _, variant = driver.partition(':')   # rule_based:<driver of the sanity sweep>
     parameters = sanity_drivers[variant] if variant else None
-    env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == 'sumo' else 'policy')
+    env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == SUMO else 'policy')
     try:
-        controller = None if name == 'sumo' else RuleBasedDriver.for_env(env, parameters)
+        controller = None if name == SUMO else RuleBasedDriver.for_env(env, parameters)
         result = EvaluationResult()
         played = run_episodes(env, controller, seeds, result, desc=driver,
                               show=show and show.named(driver.replace(':', '_')))

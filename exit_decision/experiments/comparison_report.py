@@ -20,11 +20,16 @@ import numpy as np
 from exit_decision.config import PUBLISHED_SUFFIX
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult
 from exit_decision.evaluation.plots import plt, read_csv, rolling, save
-from exit_decision.evaluation.report import TEACHER, comparison_markdown, paired_comparison
+from exit_decision.evaluation.report import SUMO, TEACHER, comparison_markdown, paired_comparison
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.tables import read_rows
 
-TABLE_METRICS = ('reward', 'p_CAV', 'p_collision_CAV', 'p_collision', 'v_AVs', 'N_braking')
+#: SPEC section 6's metrics, each with the direction that is better (speeds: higher, as the
+#: efficiency term of every mode; collisions and braking: lower)
+HIGHER_IS_BETTER = {'reward': True, 'p_CAV': True, 'p_HV2': True, 'p_collision_CAV': False, 'p_collision': False,
+                    'v_AVs': True, 'v_s': True, 'N_braking': False, 'braking_steps': False}
+TABLE_METRICS = tuple(HIGHER_IS_BETTER)
+DRIVER_NOTES = {SUMO: ": SUMO's IDM + LC2013, paper 002's IDM + MOBIL"}
 MIN_SEEDS_FOR_CLAIM = 3   # training seeds a learned method needs before a claim is made on it
 #: the papers' claims: (statement, method, compared with); a missing method leaves the claim out
 CLAIMS = (
@@ -75,7 +80,8 @@ def variant_runs(variant_dir: Path, learned: dict[str, list[str]], drivers: Sequ
 
 
 def metrics_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str) -> str:
-    header = ['method', *(f'{m} [95%]' for m in TABLE_METRICS)]
+    """Mean [95% interval] of every metric per method, and the return's standard deviation over test seeds."""
+    header = ['method', *(f'{m} [95%]' for m in TABLE_METRICS), 'reward sd']
     lines = ['| ' + ' | '.join(header) + ' |', '|---' * len(header) + '|']
     for method, by_mode in runs.items():
         if mode not in by_mode:
@@ -84,7 +90,28 @@ def metrics_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str)
         for metric in TABLE_METRICS:
             mean, low, high = paired_interval([e[metric] for e in by_mode[mode]])
             cells.append(f'{mean:.4g} [{low:.4g}, {high:.4g}]')
+        cells.append(f'{np.std([e["reward"] for e in by_mode[mode]], ddof=1):.4g}')
         lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
+def winners_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str) -> str:
+    """Per metric, the method with the best mean and its paired difference from the runner-up:
+    it wins when the interval excludes 0, else it ties with the runner-up."""
+    lines = ['| metric (better) | best | mean | runner-up | best - runner-up [95%] | verdict |', '|---' * 6 + '|']
+    evaluated = {method: by_mode[mode] for method, by_mode in runs.items() if mode in by_mode}
+    if len(evaluated) < 2:
+        return ''
+    for metric, higher in HIGHER_IS_BETTER.items():
+        sign = 1.0 if higher else -1.0
+        ranked = sorted(evaluated, key=lambda m: -sign * np.mean([e[metric] for e in evaluated[m]]))
+        best, second = ranked[:2]
+        mean, low, high = paired_difference(evaluated[best], evaluated[second], metric)
+        decided = sign * low > 0 if higher else sign * high > 0
+        lines.append(f'| {metric} ({"higher" if higher else "lower"}) | {best} | '
+                     f'{np.mean([e[metric] for e in evaluated[best]]):.4g} | {second} | '
+                     f'{mean:+.4g} [{low:+.4g}, {high:+.4g}] | '
+                     f'{"wins" if decided else "tied with the runner-up (interval includes 0)"} |')
     return '\n'.join(lines)
 
 
@@ -104,8 +131,8 @@ def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, s
     claims = [*CLAIMS,
               *((f'{method} with our measures > as published', method, method + PUBLISHED_SUFFIX)
                 for method in runs if method + PUBLISHED_SUFFIX in runs),
-              *((f'{method} > {TEACHER} (learned > rule-based)', method, TEACHER)
-                for method in runs if method not in (TEACHER, 'sumo'))]
+              *((f'{method} > {driver} (learned > rule-based{DRIVER_NOTES.get(driver, "")})', method, driver)
+                for driver in (TEACHER, SUMO) for method in runs if method not in (TEACHER, SUMO))]
     for statement, method, other in claims:
         if mode in runs.get(method, {}) and mode in runs.get(other, {}):
             mean, low, high = paired_difference(runs[method][mode], runs[other][mode], 'reward')
@@ -117,21 +144,23 @@ def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, s
 
 
 def drop_table(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], base: str, mode: str) -> str:
-    """Each method's mean Exit-1 rate and return on every variant minus on the base scenario."""
+    """Each method's Exit-1 rate and return on every variant minus on the base scenario, paired
+    by test seed, with its 95% interval; a change whose interval excludes 0 is marked *."""
     variants = [v for v in per_variant if v != base]
-    lines = ['| method | ' + ' | '.join(f'{v}: Δp_CAV / Δreturn' for v in variants) + ' |',
+    lines = ['| method | ' + ' | '.join(f'{v}: Δp_CAV / Δreturn [95%]' for v in variants) + ' |',
              '|---' * (len(variants) + 1) + '|']
+
+    def change(episodes, base_episodes, metric: str) -> str:
+        mean, low, high = paired_difference(episodes, base_episodes, metric)
+        return f'{mean:+.3g} [{low:+.3g}, {high:+.3g}]' + ('*' if low > 0 or high < 0 else '')
     for method, by_mode in per_variant.get(base, {}).items():
         if mode not in by_mode:
             continue
-        base_p = np.mean([e['p_CAV'] for e in by_mode[mode]])
-        base_r = np.mean([e['reward'] for e in by_mode[mode]])
         cells = []
         for variant in variants:
             episodes = per_variant[variant].get(method, {}).get(mode)
             cells.append('—' if not episodes else
-                         f'{np.mean([e["p_CAV"] for e in episodes]) - base_p:+.3f} / '
-                         f'{np.mean([e["reward"] for e in episodes]) - base_r:+.3f}')
+                         f'{change(episodes, by_mode[mode], "p_CAV")} / {change(episodes, by_mode[mode], "reward")}')
         lines.append(f'| {method} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 
@@ -186,14 +215,23 @@ def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, flo
 
 
 def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[str]:
-    lines = ['| method | training wall time per 100 RL episodes [s] (mean over seeds) | total per run [s] |',
-             '|---|---|---|']
+    """Per method: training wall time and the environment it used (RL episodes, simulation
+    steps and decisions of the RL phase), means over its seeds."""
+    header = ('| method | training wall time per 100 RL episodes [s] | total per run [s] | RL episodes | '
+              'simulation steps | decisions |')
+    lines = [header, '|---' * 6 + '|']
     for method, run_names in learned.items():
         timings = [json.loads((training_dir / name / 'timing.json').read_text()) for name in run_names
                    if (training_dir / name / 'timing.json').is_file()]
-        if timings:
+        curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
+                  if (training_dir / name / 'training.csv').is_file()]
+        curves = [curve for curve in curves if curve]
+        if timings and curves:
             per_100 = np.mean([100.0 * t['rl_s'] / t['episodes'] for t in timings])
-            lines.append(f'| {method} | {per_100:.0f} | {np.mean([t["total_s"] for t in timings]):.0f} |')
+            steps = np.mean([np.sum(c['steps']) for c in curves])
+            decisions = np.mean([c['decisions'][-1] for c in curves])
+            lines.append(f'| {method} | {per_100:.0f} | {np.mean([t["total_s"] for t in timings]):.0f} | '
+                         f'{np.mean([len(c["steps"]) for c in curves]):.0f} | {steps:.0f} | {decisions:.0f} |')
     return lines
 
 
@@ -214,7 +252,8 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
     if learned:
         sections += [
             (f'Learned methods are trained on the base scenario for the mode {training_mode} with '
-             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of RL episodes and our '
+             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of RL episodes (the '
+             f'environment steps each used differ: see the training table) and our '
              f'measures (shield, decision interval, lane planner, demonstrations of the rule-based driver and '
              f'pre-training on them); a method\'s episodes are averaged over its training seeds per test seed. '
              f'A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '
@@ -230,6 +269,10 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
         sections.append('## Training wall time\n\n' + '\n'.join(wall_time_lines(out_dir / 'training', learned)))
     for variant, runs in per_variant.items():
         sections.append(f'## {variant}\n\n### Metrics under {training_mode}\n\n' + metrics_table(runs, training_mode))
+        winners = winners_table(runs, training_mode)
+        if winners:
+            sections.append(f'### Who wins which metric ({training_mode}, paired against the runner-up)\n\n'
+                            + winners)
         evaluated = [EvaluatedRun(f'{method}_{mode}', episodes, EvaluationResult())
                      for method, by_mode in runs.items() for mode, episodes in by_mode.items()]
         paired = paired_comparison(evaluated, modes, max_steps)
@@ -240,7 +283,8 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
             sections.append(f'### The papers\' claims here (return under {training_mode}, paired)\n\n'
                             + '\n'.join(claims))
     if len(per_variant) > 1 and next(iter(per_variant)) == variants[0]:
-        sections.append(f'## Drop under the variants ({training_mode}; variant minus {variants[0]}, means)\n\n'
+        sections.append(f'## Drop under the variants ({training_mode}; variant minus {variants[0]}, paired by test '
+                        f'seed; * the interval excludes 0)\n\n'
                         + drop_table(per_variant, variants[0], training_mode))
     report.write_text('\n\n'.join(sections) + '\n', encoding='utf-8')
     return report

@@ -24,9 +24,15 @@ from exit_decision.tables import write_rows  # noqa: E402
 SWEEP_STEPS = 5   # points from aggressive to conservative decision weights
 
 
-def weight_points(config: ProjectConfig, aggressive: str = 'AGGI', conservative: str = 'CONI') -> dict[str, np.ndarray]:
+def sweep_ends(config: ProjectConfig) -> tuple[str, str]:
+    """The modes whose decision weights the sweep runs between: the matrix's aggressive and
+    conservative incentive modes (AGGI and CONI in the shipped config)."""
+    return config.mode_matrix.aggressive.incentive, config.mode_matrix.conservative.incentive
+
+
+def weight_points(config: ProjectConfig) -> dict[str, np.ndarray]:
     points = {name: weight_input(mode) for name, mode in config.modes.items()}
-    low, high = weight_input(config.mode(aggressive))[:4], weight_input(config.mode(conservative))[:4]
+    low, high = (weight_input(config.mode(name))[:4] for name in sweep_ends(config))
     for alpha in np.linspace(0.0, 1.0, SWEEP_STEPS):
         points[f'sweep_{alpha:.2f}'] = np.array([*((1 - alpha) * low + alpha * high), 0.5, 0.5])
     return points
@@ -66,7 +72,7 @@ def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     fig.suptitle(f'{policy_path.parent.name}: one checkpoint at every weight point ({len(seeds)} seeds each; '
-                 f'grey: AGGI→CONI decision weights, I/P 0.5/0.5)', fontsize=9)
+                 f'grey: {"→".join(sweep_ends(config))} decision weights, I/P 0.5/0.5)', fontsize=9)
     fig.tight_layout()
     fig.savefig(out_dir / 'tradeoff.png', dpi=120)
     plt.close(fig)

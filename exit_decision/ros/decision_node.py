@@ -81,8 +81,15 @@ class DecisionNode(Node):
             or default_policy_dir())
         modes = list(p('modes', config.mode_matrix.modes, describe(
             'modes whose policies are loaded at start', read_only=True)))
-        algorithms = list(p('algorithms', list(ALGORITHMS), describe(
-            'algorithms whose policies are loaded at start', read_only=True)))
+        start_algorithm = p('algorithm', ALGORITHMS[-1], describe(
+            'a learned method of config/training.yaml (per-mode policies <algorithm>_<mode>/) or '
+            '<method>_conditioned (one policy, every mode); one of parameter algorithms',
+            constraints='a learned method of config/training.yaml or <method>_conditioned, loaded at start '
+                        '(parameter algorithms)'))
+        algorithms = list(p('algorithms', list(ALGORITHMS) if start_algorithm in ALGORITHMS else [start_algorithm],
+                            describe('algorithms whose policies are loaded at start; default: the shipped ones '
+                                     f'({", ".join(ALGORITHMS)}), or only the start algorithm if it is another',
+                                     read_only=True)))
         self.config = config
         self.grid = ActionGrid(config.env.actions)
         geometry = RoadGeometry.of(config.scenario.road)
@@ -113,9 +120,7 @@ class DecisionNode(Node):
             # weights given at start win: the mode is named after them
             self.mode = self.mode_of(self.reward_weights)
             self.set_parameters([Parameter('mode', Parameter.Type.STRING, self.mode)])
-        self.algorithm = p('algorithm', algorithms[-1], describe(
-            'a learned method of config/training.yaml (gqn, mdgqn, dqn, ..., per-mode policies) or '
-            '<method>_conditioned; one of parameter algorithms', constraints=' | '.join(algorithms)))
+        self.algorithm = start_algorithm
         problem = self.problem({})
         if problem:
             raise PolicyError(problem)

@@ -18,7 +18,7 @@ BRIDGE = 'sumo_bridge'
 class Argument:
     default: str
     description: str
-    kind: type = str    # what the text becomes: str, int or bool (true/false)
+    kind: type = str    # what the text becomes: str, int, bool (true/false) or list (of str: [a, b] or a,b)
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,10 @@ class StackNode:
 ARGUMENTS: dict[str, Argument] = {
     'mode': Argument('', "decision mode at start; empty: the decision node's default, the first mode of "
                          "config/modes.yaml's matrix"),
-    'algorithm': Argument('mdgqn_conditioned', 'mdgqn_conditioned (one network, every mode), gqn or mdgqn'),
+    'algorithm': Argument('mdgqn_conditioned', 'a learned method of config/training.yaml with policies in policy_dir '
+                                               '(shipped: mdgqn_conditioned, one network for every mode; gqn; mdgqn)'),
+    'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
+                          "of config/modes.yaml", list),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
     'seed': Argument('10000', 'seed of the first episode', int),
     'timing': Argument('synchronous', 'synchronous or realtime'),
@@ -46,7 +49,7 @@ ARGUMENTS: dict[str, Argument] = {
 NODES: tuple[StackNode, ...] = (
     StackNode('recorder', ('bag_path', 'config_dir', 'use_sim_time'), listens_to_states=True),
     StackNode('graph_builder', ('config_dir', 'use_sim_time'), listens_to_states=True),
-    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'algorithm', 'use_sim_time'),
+    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time'),
               listens_to_states=True),
     StackNode('visualizer', ('config_dir', 'use_sim_time'), listens_to_states=True, enabled_by='visualizer'),
     StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time'), listens_to_states=False),
@@ -58,6 +61,8 @@ _BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
 def typed(name: str, text: str):
     """The value of argument ``name`` given as ``text``; ValueError naming it and what is allowed."""
     kind = ARGUMENTS[name].kind
+    if kind is list:
+        return [item.strip().strip('\'"') for item in text.strip().strip('[]').split(',') if item.strip()]
     try:
         return _BOOLEANS[text.lower()] if kind is bool else kind(text)
     except (KeyError, ValueError):
@@ -74,8 +79,8 @@ def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[st
     if unknown:
         raise ValueError(f'unknown argument(s) {", ".join(unknown)}; known: {", ".join(ARGUMENTS)}')
     text = {name: argument.default for name, argument in ARGUMENTS.items()}
-    text.update({name: str(value).lower() if isinstance(value, bool) else str(value)
-                 for name, value in given.items()})
+    text.update({name: str(value).lower() if isinstance(value, bool) else ','.join(value) if isinstance(value, list)
+                 else str(value) for name, value in given.items()})
     nodes = [node for node in NODES if not node.enabled_by or typed(node.enabled_by, text[node.enabled_by])]
     listeners = sum(node.listens_to_states for node in nodes) + extra_listeners
     started = []
