@@ -178,7 +178,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
             deadline = time.monotonic() + 120
             while node.count_subscribers(STATES_TOPIC) < others + 1 and time.monotonic() < deadline:
                 launcher.check_alive()
-                probe.executor.spin_once(timeout_sec=0.1)
+                probe.spin_once(0.1)
             decision_start = time.time()
             launcher.start('decision_node')
             pending = None
@@ -188,7 +188,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                 if not answered['at'] and parameters_client.service_is_ready() and pending is None:
                     pending = parameters_client.call_async(GetParameters.Request(names=['mode']))
                     pending.add_done_callback(lambda _: answered.update(at=time.time()))
-                probe.executor.spin_once(timeout_sec=0.01)
+                probe.spin_once(0.01)
         finally:
             launcher.stop()
             probe.close()

@@ -32,7 +32,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 # DDS stays on this machine unless the user chose otherwise: the one place that sets it, before
@@ -47,13 +47,23 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project
 from exit_decision.errors import PolicyError
+
+# Fast DDS's discovery timing (config/fastdds.xml says why), before any participant starts and
+# inherited like the loopback default; a user's own profile file wins.
+if not {'FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE'} & set(os.environ):
+    try:
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(default_config_dir() / 'fastdds.xml')
+    except ConfigError:
+        pass   # not installed: the node says so when it loads its config
 
 STATES_TOPIC = '/exit_decision/vehicle_states'
 GRAPH_TOPIC = '/exit_decision/traffic_graph'
@@ -206,19 +216,57 @@ class Diagnostics:
 
 
 def take_waiting(subscription) -> int:
-    """Hand every message waiting in the queue of ``subscription`` (made by
-    ``Diagnostics.subscribe``) to its callback now, without the executor, and say how many.
-
-    rclpy's executor builds its wait set again for every single message (0.35 ms here): a node
-    that looks for one message among a flood on its topic (the bridge for the commands it waits
-    on) falls behind the flood, and keep-last then drops the very message it waits for, however
-    deep the queue. Taken this way a message costs its decoding and the check that refuses it."""
+    """Hand every message waiting in the queue of ``subscription`` to its callback now, without
+    the executor, and say how many (a flood on the topic costs each message its decoding, or its
+    header read, and the check that refuses it)."""
+    with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
     taken = 0
     with subscription.handle:
         while (message := subscription.handle.take_message(subscription.msg_type, subscription.raw)) is not None:
-            subscription.callback(*message)   # Diagnostics.subscribe's callback takes (message, info)
+            subscription.callback(*(message if with_info else message[:1]))
             taken += 1
     return taken
+
+
+class Waiter:
+    """A node's wait, lean: one wait set on its subscriptions, services, clients, timers and
+    guard conditions; the queue of every subscription that is ready is emptied at once
+    (``take_waiting``), in the order the node created them (a node that subscribes to the
+    episode events first sees an episode's start before its messages); anything else ready,
+    and at least every wait's timeout, goes to rclpy's executor (``spin_once(0)``).
+
+    rclpy's executor builds its wait set again, and walks every entity of the node (two QoS
+    event handlers per publisher and subscription) in Python, for every single message it
+    hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step.
+    The QoS event handlers (warnings about incompatible QoS) are served in the executor's
+    passes only, so within the wait's timeout."""
+
+    def __init__(self, node: Node, executor: SingleThreadedExecutor):
+        self.node, self.executor = node, executor
+
+    def spin_once(self, timeout_sec: float) -> None:
+        node = self.node
+        subscriptions, services, clients = list(node.subscriptions), list(node.services), list(node.clients)
+        timers, guards = list(node.timers), list(node.guards)
+        wait_set = _rclpy.WaitSet(len(subscriptions), len(guards), len(timers), len(clients), len(services), 0,
+                                  node.context.handle)
+        for entity, add in ((subscriptions, wait_set.add_subscription), (services, wait_set.add_service),
+                            (clients, wait_set.add_client), (timers, wait_set.add_timer),
+                            (guards, wait_set.add_guard_condition)):
+            for item in entity:
+                add(item.handle)
+        wait_set.wait(int(timeout_sec * 1e9))
+        ready = set(wait_set.get_ready_entities('subscription'))
+        for subscription in subscriptions:
+            if subscription.handle.pointer in ready:
+                take_waiting(subscription)
+        # a guard condition's trigger is taken by this wait: its callback runs here
+        triggered = set(wait_set.get_ready_entities('guard_condition'))
+        for guard in guards:
+            if guard.handle.pointer in triggered and guard.callback is not None:
+                guard.callback()
+        if not ready or any(wait_set.get_ready_entities(kind) for kind in ('service', 'client', 'timer')):
+            self.executor.spin_once(timeout_sec=0.0)
 
 
 class ProbeNode:
@@ -231,13 +279,18 @@ class ProbeNode:
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self.waiter = Waiter(self.node, self.executor)
+
+    def spin_once(self, timeout_sec: float) -> None:
+        """Take what is waiting, or wait up to ``timeout_sec`` for something (``Waiter``)."""
+        self.waiter.spin_once(timeout_sec)
 
     def spin_until(self, condition: Callable[[], bool], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if condition():
                 return True
-            self.executor.spin_once(timeout_sec=0.05)
+            self.spin_once(0.05)
         return condition()
 
     def set_parameter(self, client, name: str, value, timeout: float, attempt: float = 10.0):
@@ -271,17 +324,15 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def spin(node: Node, drained: Sequence = ()) -> None:
-    """``rclpy.spin`` that wakes at least twice a second, so Ctrl-C or SIGTERM stops the node even
-    when nothing else would wake it (under use_sim_time with no /clock no timer ever fires).
-    After each callback the executor runs, the queues of the ``drained`` subscriptions are
-    emptied in their order (``take_waiting``): a node's streams, the episode events first."""
+def spin(node: Node) -> None:
+    """``rclpy.spin``, lean (``Waiter``), that wakes at least twice a second, so Ctrl-C or SIGTERM
+    stops the node even when nothing else would wake it (under use_sim_time with no /clock no
+    timer ever fires)."""
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
+    waiter = Waiter(node, executor)
     while node.context.ok():
-        executor.spin_once(timeout_sec=0.5)
-        for subscription in drained:
-            take_waiting(subscription)
+        waiter.spin_once(0.5)
 
 
 def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], None] | None = None) -> int:

@@ -140,7 +140,6 @@ class DecisionNode(Node):
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.policy_dir, self.modes = policy_dir, modes
         self.loaded: tuple | Exception | None = None   # what the loading thread hands over
-        self.drained: list = []   # the subscriptions whose queues are emptied at once (common.spin), once subscribed
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
         threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
 
@@ -191,12 +190,10 @@ class DecisionNode(Node):
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         # events first: when an episode's start and its first messages are both waiting, the
-        # executor takes the subscription created first
+        # node's wait (common.Waiter) empties the queue of the subscription created first first
         self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.drained[:] = [self.events,
-                           self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS),
-                           self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS,
-                                                      raw=True)]
+        self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         self.get_logger().info(f'loaded {len(self.controllers)} policies from {self.policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
@@ -359,7 +356,7 @@ class DecisionNode(Node):
 
 def main() -> int:
     # its streams' queues emptied at once: a flood costs each message a check, not a pass of the executor
-    return run_node('decision_node', DecisionNode, lambda node: spin(node, drained=node.drained))
+    return run_node('decision_node', DecisionNode, spin)
 
 
 if __name__ == '__main__':

@@ -18,7 +18,7 @@ from rclpy.serialization import deserialize_message
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, run_node, spin, take_waiting)
+                                      Diagnostics, declare_config, run_node, take_waiting)
 from exit_decision.ros.conversions import checked_states, graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -39,9 +39,9 @@ class GraphBuilderNode(Node):
         self.diagnostics = Diagnostics(self, 'graph_builder')
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
         # events first: when an episode's start and its first states are both waiting, the
-        # executor takes the subscription created first
+        # node's wait (common.Waiter) empties the queue of the subscription created first first
         self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.states = self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
 
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
@@ -72,9 +72,7 @@ class GraphBuilderNode(Node):
 
 
 def main() -> int:
-    # the states queue emptied at once: a flood on the topic costs each message a header read, not a
-    # pass of the executor (take_waiting)
-    return run_node('graph_builder', GraphBuilderNode, lambda node: spin(node, drained=(node.events, node.states)))
+    return run_node('graph_builder', GraphBuilderNode)
 
 
 if __name__ == '__main__':

@@ -114,7 +114,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     launcher = StackLauncher(parameters, log_dir)
     run = StackRun(bag_path)
     probe = ProbeNode('stack_launcher')
-    node, executor = probe.node, probe.executor
+    node = probe.node
     state = {'step': -1, 'episode': -1, 'ended': 0}
 
     def on_event(msg: EpisodeEvent) -> None:
@@ -138,7 +138,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
             launcher.check_alive()
             if time.monotonic() > deadline:
                 raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
-            executor.spin_once(timeout_sec=0.2)
+            probe.spin_once(0.2)
         launcher.start(BRIDGE)
         switched = switch_to is None
         deadline = time.monotonic() + timeout
@@ -146,7 +146,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
             launcher.check_alive()
             if time.monotonic() > deadline:
                 raise TimeoutError(f'the stack did not finish within {timeout} s')
-            executor.spin_once(timeout_sec=0.05)
+            probe.spin_once(0.05)
             if not switched and state['episode'] == 0 and state['step'] >= switch_at_step:
                 result = probe.set_parameter(client, 'mode', switch_to, timeout=10.0)
                 run.mode_switch = (f'mode {mode} -> {switch_to} at step {state["step"]}: '
@@ -155,7 +155,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 switched = True
         end = time.monotonic() + 5.0   # the last episode event may still be in flight
         while state['ended'] < episodes and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.1)
+            probe.spin_once(0.1)
     finally:
         run.return_codes = launcher.stop()
         probe.close()

@@ -29,7 +29,7 @@ from rosgraph_msgs.msg import Clock
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC,
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
-                                      declare_config, describe, follow, run_node, take_waiting)
+                                      Waiter, declare_config, describe, follow, run_node, take_waiting)
 from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of, states_to_msg
 from exit_decision.scenario.simulation import CommandError
 from exit_decision.traffic import CavCommand
@@ -89,6 +89,7 @@ class SumoBridge(Node):
         self.pending: dict[str, CavCommand] | None = None   # accepted, not yet applied
         self.executor_ = SingleThreadedExecutor(context=self.context)
         self.executor_.add_node(self)
+        self.waiter = Waiter(self, self.executor_)   # the waits of the loop: commands taken without an executor pass
         self.get_logger().info(f'{self.timing} bridge, {self.episodes or "unlimited"} episode(s) from seed '
                                f'{self.seed}, decisions every {self.interval} steps')
 
@@ -152,7 +153,7 @@ class SumoBridge(Node):
                     self.get_logger().warning(f'no commands for step {step} within {self.command_timeout} s: '
                                               'holding the previous ones', throttle_duration_sec=5.0)
                     return None
-                self.executor_.spin_once(timeout_sec=remaining)
+                self.waiter.spin_once(remaining)
             return None
         finally:
             self.awaiting = None
@@ -200,7 +201,7 @@ class SumoBridge(Node):
             else:
                 next_tick += self.step_length / self.realtime_factor
                 while (wait := next_tick - time.monotonic()) > 0:
-                    self.executor_.spin_once(timeout_sec=wait)
+                    self.waiter.spin_once(wait)
                 take_waiting(self.commands)
                 commands = self.take_commands()
             result, _ = self.env.simulate_step(commands)
