@@ -75,6 +75,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.mode != CONDITIONED:
         config.mode(args.mode)
     episodes = args.episodes or config.training.episodes
+    if args.episodes and config.training.environment_steps:   # episodes given: they are the budget
+        config = config.model_copy(update={'training': config.training.model_copy(update={'environment_steps': None})})
     out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
     if args.reward_variant:
         config.reward(args.reward_variant)
@@ -365,7 +367,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument('--mode', default='conditioned',
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')
-    train.add_argument('--episodes', type=int, default=None, help='default: config/training.yaml')
+    train.add_argument('--episodes', type=int, default=None,
+                       help="RL episodes (default: config/training.yaml's episodes, or its environment_steps budget "
+                            "when set; given, they replace that budget)")
     train.add_argument('--seed', type=int, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
     train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')

@@ -353,6 +353,7 @@ class ExplorationConfig(Strict):
     epsilon_start: Probability
     epsilon_end: Probability
     epsilon_decay_episodes: PositiveInt
+    epsilon_decay_steps: PositiveInt | None = None   # given: the decay runs over this many RL decisions instead
     keep_lane_probability: Probability
     acceleration_std: NonNegativeFloat
 
@@ -364,6 +365,7 @@ class DemonstrationConfig(Strict):
     margin_weight_start: NonNegativeFloat
     margin_weight_end: NonNegativeFloat
     margin_decay_episodes: PositiveInt
+    margin_decay_steps: PositiveInt | None = None   # given: the decay runs over this many RL decisions instead
     pretrain_updates: Count
 
 
@@ -389,6 +391,10 @@ class ConditioningConfig(Strict):
 
 class TrainingConfig(Strict):
     episodes: PositiveInt
+    #: given: the RL phase's budget in environment steps (decisions) instead of ``episodes``; it
+    #: ends with the episode in which the budget is reached (methods whose episodes last longer
+    #: or end sooner get the same experience: a fair budget across methods)
+    environment_steps: PositiveInt | None = None
     gamma: UnitInterval
     learning_rate: PositiveFloat
     fine_tune_learning_rate: PositiveFloat

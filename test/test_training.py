@@ -1,6 +1,7 @@
 """Short training runs end to end: finite losses, checkpoints chosen against the teacher,
 the conditioned network evaluated at every mode, resume."""
 import csv
+import json
 import math
 
 import pytest
@@ -73,6 +74,25 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
         Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=3, progress=False)
     with pytest.raises(ValueError, match='a gqn/CONP run, not mdgqn/CONP'):
         Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').load_state(tmp_path / 'run' / 'last.pt')
+
+
+def test_a_budget_of_environment_steps_ends_training_and_runs_the_schedules_in_steps(config_dir, tmp_path):
+    steps = 150
+    budget = {'training': {'environment_steps': steps, 'exploration': {'epsilon_decay_steps': steps},
+                           'demonstrations': {'margin_decay_steps': 2 * steps}}}
+    config = load_project(config_dir, overrides=[TINY, budget])
+    Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=1000, progress=False)
+    log = rows(tmp_path / 'run' / 'training.csv')
+    decisions = [int(r['decisions']) for r in log]
+    assert decisions[-1] >= steps > decisions[-2], 'ends with the episode that reaches the budget, not at 1000'
+    e, d = config.training.exploration, config.training.demonstrations
+    # epsilon: the episode's, from the decisions before it; the margin weight: at the episode's end
+    for row, before, after in zip(log, [0, *decisions[:-1]], decisions):
+        assert float(row['epsilon']) == pytest.approx(e.epsilon_start + (e.epsilon_end - e.epsilon_start) * before / steps)
+        assert float(row['margin_weight']) == pytest.approx(
+            d.margin_weight_start + (d.margin_weight_end - d.margin_weight_start) * min(after / (2 * steps), 1.0))
+    timing = json.loads((tmp_path / 'run' / 'timing.json').read_text())
+    assert (timing['episodes'], timing['decisions']) == (len(log), decisions[-1])
 
 
 def test_training_can_start_from_a_policy_network_without_pre_training(config_dir, tmp_path):

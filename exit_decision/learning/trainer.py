@@ -149,15 +149,25 @@ class Trainer:
 
     # --- schedules --------------------------------------------------------------------------
 
+    def progress(self, episodes: int, steps: int | None) -> float:
+        """How far a schedule of ``episodes`` RL episodes (or, given, ``steps`` RL decisions) has run, 0..1."""
+        if steps:
+            return min(self.state.decisions / steps, 1.0)
+        return min(self.state.episode / episodes, 1.0) if episodes else 1.0
+
     def epsilon(self) -> float:
         e = self.training.exploration
-        fraction = min(self.state.episode / e.epsilon_decay_episodes, 1.0)
+        fraction = self.progress(e.epsilon_decay_episodes, e.epsilon_decay_steps)
         return e.epsilon_start + (e.epsilon_end - e.epsilon_start) * fraction
 
     def margin_weight(self) -> float:
         d = self.training.demonstrations
-        fraction = min(self.state.episode / d.margin_decay_episodes, 1.0)
+        fraction = self.progress(d.margin_decay_episodes, d.margin_decay_steps)
         return d.margin_weight_start + (d.margin_weight_end - d.margin_weight_start) * fraction
+
+    def budget_spent(self, episodes: int) -> bool:
+        """The RL phase is over: ``episodes`` episodes, or the configured environment steps."""
+        return self.progress(episodes, self.training.environment_steps) >= 1.0
 
     def episode_weights(self) -> np.ndarray | None:
         """The weights the policy acts for in a training episode (conditioned: drawn)."""
@@ -360,7 +370,8 @@ class Trainer:
     def run(self, episodes: int, resume: Path | None = None, progress: bool = True,
             init: Path | None = None) -> Path:
         """Demonstrations, pre-training (skipped when resuming or starting from ``init``'s
-        network), then the RL episodes with validation; returns the kept policy.pt."""
+        network), then the RL episodes with validation, ``episodes`` of them or, when the config
+        gives ``environment_steps``, as many as that budget takes; returns the kept policy.pt."""
         if resume is None and (self.out_dir / 'training.csv').exists():
             raise FileExistsError(f'{self.out_dir} holds an earlier run (training.csv): resume it with '
                                   f'--resume {self.out_dir / "last.pt"}, or choose another --out')
@@ -387,16 +398,19 @@ class Trainer:
         with Validator(task, self.training.validation.parallel, self.env) as validator:
             if self.state.episode == 0:
                 validator.submit(self.save_candidate())   # the pre-trained policy is a candidate too
-            bar = tqdm(total=episodes, initial=self.state.episode, desc=f'train {self.algorithm}/{self.mode}',
-                       unit='ep', disable=not progress)
-            while self.state.episode < episodes:
+            steps = self.training.environment_steps
+            bar = tqdm(total=steps or episodes, initial=self.state.decisions if steps else self.state.episode,
+                       desc=f'train {self.algorithm}/{self.mode}', unit='step' if steps else 'ep',
+                       disable=not progress)
+            while not self.budget_spent(episodes):
+                before = self.state.decisions
                 metrics = self.train_episode()
-                bar.update(1)
+                bar.update(self.state.decisions - before if steps else 1)
                 bar.set_postfix(p_CAV=f'{metrics["p_CAV"]:.2f}', col=f'{metrics["p_collision_CAV"]:.2f}',
                                 best=f'{self.state.best_score:.3g}')
                 for path, per_mode in validator.finished():
                     self.record_validation(path, per_mode)
-                if self.state.episode % self.training.validation.every_episodes == 0 or self.state.episode == episodes:
+                if self.state.episode % self.training.validation.every_episodes == 0 or self.budget_spent(episodes):
                     validator.submit(self.save_candidate())
                     self.save_state()
             bar.close()
@@ -404,19 +418,20 @@ class Trainer:
                 self.record_validation(path, per_mode)
         self.save_state()
         self.env.close()
-        self.write_timing(clock, episodes, 'resumed: this invocation only' if resume is not None else
+        self.write_timing(clock, 'resumed: this invocation only' if resume is not None else
                           f'demonstrations, RL and validation; network from {init}, not pre-trained'
                           if init is not None else 'demonstrations, pre-training, RL and validation')
         return self.out_dir / 'policy.pt'
 
-    def write_timing(self, clock: dict[str, float], episodes: int, note: str) -> None:
-        """timing.json: wall time of the run's phases (this invocation; a resumed run's own)."""
+    def write_timing(self, clock: dict[str, float], note: str) -> None:
+        """timing.json: wall time of the run's phases (this invocation; a resumed run's own), and
+        the RL episodes and decisions of the run."""
         end = time.monotonic()
         (self.out_dir / 'timing.json').write_text(json.dumps({
             'demonstrations_s': clock['demonstrations'] - clock['start'],
             'pretraining_s': clock['pretraining'] - clock['demonstrations'],
-            'rl_s': end - clock['pretraining'], 'total_s': end - clock['start'], 'episodes': episodes,
-            'note': note},
+            'rl_s': end - clock['pretraining'], 'total_s': end - clock['start'], 'episodes': self.state.episode,
+            'decisions': self.state.decisions, 'note': note},
             indent=2))
 
     def train_episode(self) -> dict[str, float]:
