@@ -33,10 +33,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.metrics import markdown_table, summarize
 
-    config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.variant and args.scenario_override:
+        raise UsageError('--variant and --scenario-override: give one (a variant is a scenario override)')
+    if args.variant:
+        from exit_decision.experiments.compare import load_variants
+        config = load_variants((args.config_dir or default_config_dir()) / 'variants.yaml', args.config_dir,
+                               args.override, [args.variant])[args.variant]
+    else:
+        config = load_project(args.config_dir, args.scenario_override, args.override)
     env = ExitDecisionEnv(config, mode=args.mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
     hold = np.full(config.graph.max_vehicles, env.actions.index(0, 0.0))
-    episodes = []
+    episodes, peak = [], 0
     try:
         for episode in tqdm(range(args.episodes), desc='episodes', unit='ep', disable=args.episodes == 1):
             env.reset(seed=args.seed + episode)
@@ -45,6 +52,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 _, _, terminated, truncated, _ = env.step(hold)
                 done = terminated or truncated
             episodes.append(env.episode_log.metrics())
+            peak = max(peak, env.episode_log.peak_vehicles)
     finally:
         env.close()
     label = f'{args.driver} CAVs, reward {config.env.reward_variant}/{env.mode}'
@@ -52,6 +60,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     table = markdown_table([(label, summarize(episodes))])
     print(title)
     print(table)
+    print(f'peak vehicles on the road at one step: {peak} (the graph holds N = {config.graph.max_vehicles})')
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
         command = 'exit-decision ' + ' '.join(sys.argv[1:]) if argv_is_cli() else 'exit-decision run'
@@ -354,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
                           'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
                           'every CAV holding lane and speed (shows that collisions are real)')
     run.add_argument('--mode', default=None, help='decision mode for the reward (default: env.yaml)')
+    run.add_argument('--variant', default=None, help='a cell of config/variants.yaml (e.g. density_1.45)')
     run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here')
     run.add_argument('--markdown', type=Path, default=None,
                      help='write the table with the command and the full configuration here')

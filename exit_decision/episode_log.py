@@ -37,9 +37,11 @@ class EpisodeLog:
     target_exits: dict[str, int] = field(default_factory=dict)   # class -> vehicles that left by the target exit
     reward_weights: np.ndarray | None = None    # (4, 2) multipliers of the mode the return is scored under
     reward_vector: np.ndarray = field(default_factory=lambda: np.zeros((4, 2)))  # summed over steps
+    peak_vehicles: int = 0   # most vehicles on the road at one step: what the graph's N must hold
 
     def record(self, step: StepResult, reward_vector: np.ndarray | None = None) -> None:
         self.steps += 1
+        self.peak_vehicles = max(self.peak_vehicles, len(step.vehicles))
         for vehicle in step.vehicles:
             self.entered.setdefault(vehicle.vehicle_class, set()).add(vehicle.vehicle_id)
             self.speed_sum += vehicle.speed

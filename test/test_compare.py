@@ -141,3 +141,12 @@ def test_a_drop_under_a_variant_is_paired_by_test_seed_and_marked_when_resolved(
     assert row.startswith('| m | -0.167 [')
     assert '/ -2 [-2, -2]*' in row
     assert not row.split(' / ')[0].endswith('*')
+
+
+def test_run_on_a_variant_says_its_peak_of_vehicles_against_the_graphs_capacity(capsys):
+    assert main(['run', '--variant', 'length_0.5', '--episodes', '1', '--seed', '10000']) == 0
+    peak = int(re.search(r'peak vehicles on the road at one step: (\d+) \(the graph holds N = 60\)',
+                         capsys.readouterr().out).group(1))
+    assert 0 < peak <= 60
+    assert main(['run', '--variant', 'length_0.1']) != 0
+    assert "no cell 'length_0.1'; cells: base, politeness_0.4" in capsys.readouterr().err

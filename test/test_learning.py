@@ -96,6 +96,15 @@ def test_each_acting_row_gets_its_own_terms_and_an_equal_share_of_the_rest():
     assert transition.global_return[0, 0] == pytest.approx(1 + 3 + 100 + 4), 'the global return keeps every term'
 
 
+def test_a_decision_where_no_cav_acted_gives_no_transition_but_its_reward_still_counts():
+    acc = EpisodeAccumulator(steps=2, gamma=0.5)
+    assert acc.add(record(('h', '', ''), 1.0, actions=(NO_ACTION,) * 3)) == []   # no CAV yet (SGRL: not the learner)
+    acc.add(record(('a', '', ''), 2.0))
+    assert acc.add(record(('a', '', ''), 4.0)) == [], 'the first decision is complete but nobody acted in it'
+    (last, final) = acc.finish(record(('a', '', ''), 0.0), terminated=True)
+    assert [scored(last), scored(final)] == [2 + 0.5 * 4, 4.0]
+
+
 def test_truncated_episode_still_bootstraps():
     acc = EpisodeAccumulator(steps=3, gamma=0.5)
     acc.add(record(('a', '', ''), 1.0))

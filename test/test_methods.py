@@ -78,14 +78,14 @@ def config_dir(tmp_path_factory):
     return small_config_dir(tmp_path_factory.mktemp('cfg') / 'config')
 
 
-@pytest.mark.parametrize('method', list(load_project().training.methods))
+@pytest.mark.parametrize('method', load_project().training.method_names)   # the published rows too
 def test_each_method_trains_and_leaves_an_evaluable_checkpoint(method, config_dir, tmp_path):
     config = load_project(config_dir, overrides=[TINY])
     trainer = Trainer(config, method, 'CONP', 0, tmp_path / 'run')
     policy = load_policy(trainer.run(episodes=1, progress=False))
     log = rows(tmp_path / 'run' / 'training.csv')
     assert all(math.isfinite(float(row['loss'])) for row in log)
-    assert policy.metadata['algorithm'] == method and policy.encoder.name == config.training.methods[method].encoder
+    assert policy.metadata['algorithm'] == method and policy.encoder.name == config.training.method(method).encoder
     env = trainer.env.__class__(config, mode='CONP')
     controller = PolicyController(policy, env.shield, planner=env.planner)   # what evaluation and the node run
     decided = 0

@@ -60,6 +60,13 @@ class Transition:
     next_masks: np.ndarray
 
 
+def acting(transitions: list[Transition]) -> list[Transition]:
+    """The transitions in which some CAV acted: one with no acting row (no CAV on the road yet,
+    or, in SGRL, not the learning one) teaches nothing, and a batch of only such had no TD
+    error to average (a NaN loss)."""
+    return [transition for transition in transitions if (transition.actions >= 0).any()]
+
+
 class EpisodeAccumulator:
     def __init__(self, steps: int, gamma: float):
         self.steps, self.gamma = steps, gamma
@@ -73,7 +80,7 @@ class EpisodeAccumulator:
         while self.emitted + self.steps < len(self.records):
             out.append(self._transition(self.emitted, self.emitted + self.steps, terminated=False))
             self.emitted += 1
-        return out
+        return acting(out)
 
     def finish(self, final: DecisionRecord, terminated: bool) -> list[Transition]:
         """The episode ended in ``final`` (its actions unused): emit the remaining transitions."""
@@ -81,7 +88,7 @@ class EpisodeAccumulator:
         last = len(self.records) - 1
         out = [self._transition(t, last, terminated) for t in range(self.emitted, last)]
         self.emitted = last
-        return out
+        return acting(out)
 
     def _transition(self, t: int, end: int, terminated: bool) -> Transition:
         start, stop = self.records[t], self.records[end]
