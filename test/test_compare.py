@@ -150,3 +150,14 @@ def test_run_on_a_variant_says_its_peak_of_vehicles_against_the_graphs_capacity(
     assert 0 < peak <= 60
     assert main(['run', '--variant', 'length_0.1']) != 0
     assert "no cell 'length_0.1'; cells: base, politeness_0.4" in capsys.readouterr().err
+
+
+def test_a_claim_says_how_far_its_training_runs_spread_and_when_they_disagree():
+    from exit_decision.experiments.comparison_report import claim_lines
+    runs = {'sgrl': {'CONP': _episodes(reward=[3, 4, 5])}, 'mgrl': {'CONP': _episodes(reward=[1, 2, 3])}}
+    (line,) = [line for line in claim_lines(runs, 'CONP', {'sgrl': 3, 'mgrl': 3},
+                                            {'sgrl': [2.0, 6.0, 4.0], 'mgrl': [1.0, 3.0, 2.0]})
+               if line.startswith('- SGRL > MGRL')]
+    # averaged over the runs SGRL leads by 2 on every test seed; single runs range from 2 - 3 to 6 - 1
+    assert 'return difference +2.000 [+2.000, +2.000]; training runs: -1.000 to +5.000 (they disagree in sign)' in line
+    assert line.endswith('**holds**')

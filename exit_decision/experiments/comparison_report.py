@@ -124,9 +124,22 @@ def verdict(low: float, high: float) -> str:
     return 'holds' if low > 0 else 'fails (reversed)' if high < 0 else 'unresolved (interval includes 0)'
 
 
-def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, seeds: dict[str, int]) -> list[str]:
+def run_returns(variant_dir: Path, learned: dict[str, list[str]], mode: str) -> dict[str, list[float]]:
+    """Per learned method, each training run's mean return on this variant under ``mode``."""
+    out = {}
+    for method, run_names in learned.items():
+        paths = [variant_dir / f'{name}_{mode}.csv' for name in run_names]
+        if paths and all(path.is_file() for path in paths):
+            out[method] = [float(np.mean([e['reward'] for e in episodes_of(path)])) for path in paths]
+    return out
+
+
+def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, seeds: dict[str, int],
+                per_run: dict[str, list[float]] | None = None) -> list[str]:
     """Each claim whose two sides were evaluated: the paired return difference and its verdict
-    (a learned side with fewer than MIN_SEEDS_FOR_CLAIM training seeds: no verdict)."""
+    (a learned side with fewer than MIN_SEEDS_FOR_CLAIM training seeds: no verdict). The
+    interval is over test seeds; ``per_run`` (each training run's mean return) adds how far
+    the training seeds spread it: the difference of every pair of runs, min to max."""
     lines = []
     claims = [*CLAIMS,
               *((f'{method} with our measures > as published', method, method + PUBLISHED_SUFFIX)
@@ -138,7 +151,13 @@ def claim_lines(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str, s
             mean, low, high = paired_difference(runs[method][mode], runs[other][mode], 'reward')
             few = [f'{m} has {seeds[m]} training seed(s)' for m in (method, other)
                    if seeds.get(m, MIN_SEEDS_FOR_CLAIM) < MIN_SEEDS_FOR_CLAIM]
-            lines.append(f'- {statement}: return difference {mean:+.3f} [{low:+.3f}, {high:+.3f}]: '
+            spread = ''
+            if per_run and method in per_run:
+                theirs = per_run.get(other, [float(np.mean([e['reward'] for e in runs[other][mode]]))])
+                pairs = [a - b for a in per_run[method] for b in theirs]
+                spread = (f'; training runs: {min(pairs):+.3f} to {max(pairs):+.3f}'
+                          + (' (they disagree in sign)' if min(pairs) < 0 < max(pairs) else ''))
+            lines.append(f'- {statement}: return difference {mean:+.3f} [{low:+.3f}, {high:+.3f}]{spread}: '
                          + (f'no verdict ({"; ".join(few)})' if few else f'**{verdict(low, high)}**'))
     return lines
 
@@ -278,9 +297,13 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
         paired = paired_comparison(evaluated, modes, max_steps)
         if paired:
             sections.append('### Against the neutral teacher, every mode\n\n' + comparison_markdown(paired))
-        claims = claim_lines(runs, training_mode, {method: len(names) for method, names in learned.items()})
+        claims = claim_lines(runs, training_mode, {method: len(names) for method, names in learned.items()},
+                             run_returns(out_dir / variant, learned, training_mode))
         if claims:
             sections.append(f'### The papers\' claims here (return under {training_mode}, paired)\n\n'
+                            'The interval is over test seeds, with each learned method averaged over its training '
+                            'runs; "training runs" is the difference between every pair of single runs (each '
+                            'run\'s mean over the test seeds), the spread the training seeds add.\n\n'
                             + '\n'.join(claims))
     if len(per_variant) > 1 and next(iter(per_variant)) == variants[0]:
         sections.append(f'## Drop under the variants ({training_mode}; variant minus {variants[0]}, paired by test '
