@@ -187,7 +187,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                 launcher.check_alive()
                 if not answered['at'] and parameters_client.service_is_ready() and pending is None:
                     pending = parameters_client.call_async(GetParameters.Request(names=['mode']))
-                    pending.add_done_callback(lambda _: answered.update(at=time.time()))
+                if pending is not None and not answered['at'] and pending.done():   # polled: no executor task late
+                    answered['at'] = time.time()
                 probe.spin_once(0.01)
         finally:
             launcher.stop()

@@ -84,8 +84,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.mode != CONDITIONED:
         config.mode(args.mode)
     episodes = args.episodes or config.training.episodes
-    if args.episodes and config.training.environment_steps:   # episodes given: they are the budget
-        config = config.model_copy(update={'training': config.training.model_copy(update={'environment_steps': None})})
+    steps = config.training.of_method(args.algorithm).environment_steps
+    if args.episodes and steps:
+        raise UsageError(f'--episodes {args.episodes}: this config\'s budget for {args.algorithm} is environment_steps: '
+                         f'{steps}; give one budget (drop --episodes, or set environment_steps to null with --override)')
     out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
     if args.reward_variant:
         config.reward(args.reward_variant)
@@ -378,8 +380,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')
     train.add_argument('--episodes', type=int, default=None,
-                       help="RL episodes (default: config/training.yaml's episodes, or its environment_steps budget "
-                            "when set; given, they replace that budget)")
+                       help="RL episodes (default: config/training.yaml's episodes; refused when the config's budget "
+                            "is environment_steps)")
     train.add_argument('--seed', type=int, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
     train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')

@@ -172,6 +172,19 @@ def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(s
         stop(process)
 
 
+def test_the_start_algorithm_defaults_to_the_last_of_the_algorithms_loaded(setup):
+    process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
+                                           'algorithms': ['gqn'], 'modes': ['AGGI']},
+                         setup['root'] / 'decision_algorithms.log')
+    test = ProbeNode('algorithms_test')
+    try:
+        assert get_parameters(test, 'decision_node', ['algorithm', 'mode']) == ['gqn', 'AGGI']
+        assert process.poll() is None
+    finally:
+        test.close()
+        stop(process)
+
+
 def test_missing_policy_fails_at_start_naming_the_path(setup, tmp_path):
     process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': str(tmp_path)},
                          tmp_path / 'decision.log')

@@ -108,3 +108,13 @@ def test_training_can_start_from_a_policy_network_without_pre_training(config_di
         assert torch.equal(ours.network.state_dict()[key], value), key
     with pytest.raises(PolicyError, match='is not this run'):
         Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'third').load_network(start)
+
+
+def test_train_refuses_episodes_when_the_config_budgets_environment_steps(config_dir, tmp_path, capsys):
+    from exit_decision.cli import main
+    override = tmp_path / 'steps.yaml'
+    override.write_text('training: {environment_steps: 100}\n')
+    assert main(['train', '--config-dir', str(config_dir), '--override', str(override), '--algorithm', 'gqn',
+                 '--mode', 'CONP', '--episodes', '3', '--out', str(tmp_path / 'run')]) == 2
+    assert "--episodes 3: this config's budget for gqn is environment_steps: 100" in capsys.readouterr().err
+    assert not (tmp_path / 'run').exists()

@@ -104,12 +104,15 @@ def winners_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str)
         return ''
     for metric, higher in HIGHER_IS_BETTER.items():
         sign = 1.0 if higher else -1.0
-        ranked = sorted(evaluated, key=lambda m: -sign * np.mean([e[metric] for e in evaluated[m]]))
+        means = {m: float(np.nanmean([e[metric] for e in evaluated[m]])) for m in evaluated}
+        ranked = sorted((m for m in evaluated if np.isfinite(means[m])), key=lambda m: -sign * means[m])
+        if len(ranked) < 2:
+            continue
         best, second = ranked[:2]
         mean, low, high = paired_difference(evaluated[best], evaluated[second], metric)
         decided = sign * low > 0 if higher else sign * high > 0
         lines.append(f'| {metric} ({"higher" if higher else "lower"}) | {best} | '
-                     f'{np.mean([e[metric] for e in evaluated[best]]):.4g} | {second} | '
+                     f'{means[best]:.4g} | {second} | '
                      f'{mean:+.4g} [{low:+.4g}, {high:+.4g}] | '
                      f'{"wins" if decided else "tied with the runner-up (interval includes 0)"} |')
     return '\n'.join(lines)

@@ -33,6 +33,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 # DDS stays on this machine unless the user chose otherwise: the one place that sets it, before
@@ -45,7 +46,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rcl_interfaces.srv import SetParameters
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
@@ -61,9 +62,11 @@ from exit_decision.errors import PolicyError
 # inherited like the loopback default; a user's own profile file wins.
 if not {'FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE'} & set(os.environ):
     try:
-        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(default_config_dir() / 'fastdds.xml')
+        _profile = default_config_dir() / 'fastdds.xml'
     except ConfigError:
-        pass   # not installed: the node says so when it loads its config
+        _profile = None   # not installed: the node says so when it loads its config
+    if _profile is not None and _profile.is_file():
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(_profile)
 
 STATES_TOPIC = '/exit_decision/vehicle_states'
 GRAPH_TOPIC = '/exit_decision/traffic_graph'
@@ -215,57 +218,80 @@ class Diagnostics:
         self.publisher.publish(message)
 
 
-def take_waiting(subscription) -> int:
-    """Hand every message waiting in the queue of ``subscription`` to its callback now, without
-    the executor, and say how many (a flood on the topic costs each message its decoding, or its
-    header read, and the check that refuses it)."""
+def take_waiting(subscription, limit: int | None = None) -> int:
+    """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
+    its callback now, without the executor, and say how many (a flood on the topic costs each
+    message its decoding, or its header read, and the check that refuses it)."""
     with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
     taken = 0
-    with subscription.handle:
-        while (message := subscription.handle.take_message(subscription.msg_type, subscription.raw)) is not None:
-            subscription.callback(*(message if with_info else message[:1]))
-            taken += 1
+    try:
+        with subscription.handle:
+            while limit is None or taken < limit:
+                message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                if message is None:
+                    break
+                subscription.callback(*(message if with_info else message[:1]))
+                taken += 1
+    except InvalidHandle:   # destroyed (by an earlier callback of this pass)
+        pass
     return taken
 
 
 class Waiter:
     """A node's wait, lean: one wait set on its subscriptions, services, clients, timers and
-    guard conditions; the queue of every subscription that is ready is emptied at once
-    (``take_waiting``), in the order the node created them (a node that subscribes to the
-    episode events first sees an episode's start before its messages); anything else ready,
-    and at least every wait's timeout, goes to rclpy's executor (``spin_once(0)``).
+    guard conditions. Each subscription that is ready hands over its queue at once, up to its
+    QoS depth a pass (``take_waiting``), in the order the node created them (a node that
+    subscribes to the episode events first sees an episode's start before its messages); a
+    guard condition's callback runs here (the wait takes its trigger). rclpy's executor
+    (``spin_once(0)``) serves the rest: services, clients and timers when they are ready, and
+    its own work (tasks of futures, QoS event handlers) at least every ``EXECUTOR_PERIOD``.
 
     rclpy's executor builds its wait set again, and walks every entity of the node (two QoS
     event handlers per publisher and subscription) in Python, for every single message it
-    hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step.
-    The QoS event handlers (warnings about incompatible QoS) are served in the executor's
-    passes only, so within the wait's timeout."""
+    hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step."""
+
+    EXECUTOR_PERIOD = 0.5   # [s]
 
     def __init__(self, node: Node, executor: SingleThreadedExecutor):
         self.node, self.executor = node, executor
+        self.executor_passed = time.monotonic()
 
     def spin_once(self, timeout_sec: float) -> None:
         node = self.node
-        subscriptions, services, clients = list(node.subscriptions), list(node.services), list(node.clients)
-        timers, guards = list(node.timers), list(node.guards)
-        wait_set = _rclpy.WaitSet(len(subscriptions), len(guards), len(timers), len(clients), len(services), 0,
-                                  node.context.handle)
-        for entity, add in ((subscriptions, wait_set.add_subscription), (services, wait_set.add_service),
-                            (clients, wait_set.add_client), (timers, wait_set.add_timer),
-                            (guards, wait_set.add_guard_condition)):
-            for item in entity:
-                add(item.handle)
-        wait_set.wait(int(timeout_sec * 1e9))
-        ready = set(wait_set.get_ready_entities('subscription'))
-        for subscription in subscriptions:
-            if subscription.handle.pointer in ready:
-                take_waiting(subscription)
-        # a guard condition's trigger is taken by this wait: its callback runs here
-        triggered = set(wait_set.get_ready_entities('guard_condition'))
-        for guard in guards:
-            if guard.handle.pointer in triggered and guard.callback is not None:
-                guard.callback()
-        if not ready or any(wait_set.get_ready_entities(kind) for kind in ('service', 'client', 'timer')):
+        entities = {'subscription': list(node.subscriptions), 'service': list(node.services),
+                    'client': list(node.clients), 'timer': list(node.timers), 'guard_condition': list(node.guards)}
+        with ExitStack() as alive:   # as rclpy's executor: no entity destroyed while waited on
+            for kind, items in entities.items():
+                kept = []
+                for item in items:
+                    try:
+                        alive.enter_context(item.handle)
+                        kept.append(item)
+                    except InvalidHandle:
+                        pass
+                entities[kind] = kept
+            wait_set = _rclpy.WaitSet(len(entities['subscription']), len(entities['guard_condition']),
+                                      len(entities['timer']), len(entities['client']), len(entities['service']), 0,
+                                      node.context.handle)
+            for kind, add in (('subscription', wait_set.add_subscription), ('service', wait_set.add_service),
+                              ('client', wait_set.add_client), ('timer', wait_set.add_timer),
+                              ('guard_condition', wait_set.add_guard_condition)):
+                for item in entities[kind]:
+                    add(item.handle)
+            wait_set.wait(int(timeout_sec * 1e9))
+            ready = {kind: set(wait_set.get_ready_entities(kind)) for kind in entities}
+            pointers = {kind: [item.handle.pointer for item in items] for kind, items in entities.items()}
+        triggered = [guard for guard, pointer in zip(entities['guard_condition'], pointers['guard_condition'])
+                     if pointer in ready['guard_condition'] and guard.callback is not None]
+        for subscription, pointer in zip(entities['subscription'], pointers['subscription']):
+            if pointer in ready['subscription']:
+                take_waiting(subscription, subscription.qos_profile.depth or None)   # keep-all: depth 0
+        for guard in triggered:
+            guard.callback()
+        now = time.monotonic()
+        if (ready['service'] or ready['client'] or ready['timer'] or not ready['subscription']
+                or now - self.executor_passed >= self.EXECUTOR_PERIOD):
+            self.executor_passed = now
             self.executor.spin_once(timeout_sec=0.0)
 
 

@@ -81,15 +81,21 @@ class DecisionNode(Node):
             or default_policy_dir())
         modes = list(p('modes', config.mode_matrix.modes, describe(
             'modes whose policies are loaded at start', read_only=True)))
-        start_algorithm = p('algorithm', ALGORITHMS[-1], describe(
+        start_algorithm = p('algorithm', '', describe(
             'a learned method of config/training.yaml (per-mode policies <algorithm>_<mode>/) or '
-            '<method>_conditioned (one policy, every mode); one of parameter algorithms',
+            '<method>_conditioned (one policy, every mode); one of parameter algorithms; empty at start: '
+            'the last of parameter algorithms',
             constraints='a learned method of config/training.yaml or <method>_conditioned, loaded at start '
                         '(parameter algorithms)'))
-        algorithms = list(p('algorithms', list(ALGORITHMS) if start_algorithm in ALGORITHMS else [start_algorithm],
-                            describe('algorithms whose policies are loaded at start; default: the shipped ones '
-                                     f'({", ".join(ALGORITHMS)}), or only the start algorithm if it is another',
-                                     read_only=True)))
+        shipped = not start_algorithm or start_algorithm in ALGORITHMS
+        algorithms = list(p('algorithms', list(ALGORITHMS) if shipped else [start_algorithm], describe(
+            f'algorithms whose policies are loaded at start; default: the shipped ones ({", ".join(ALGORITHMS)}), '
+            'or only the start algorithm if it is another', read_only=True)))
+        if not algorithms:
+            raise PolicyError('parameter algorithms: give at least one algorithm')
+        if not start_algorithm:
+            start_algorithm = algorithms[-1]
+            self.set_parameters([Parameter('algorithm', Parameter.Type.STRING, start_algorithm)])
         self.config = config
         self.grid = ActionGrid(config.env.actions)
         geometry = RoadGeometry.of(config.scenario.road)

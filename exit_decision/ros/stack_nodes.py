@@ -86,6 +86,7 @@ def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[st
     started = []
     for node in nodes:
         parameters = {name: typed(name, text[name]) for name in node.arguments if text[name] != ''}
+        parameters = {name: value for name, value in parameters.items() if value != []}   # [] has no ROS type
         if node.executable == BRIDGE:
             parameters['wait_for_subscribers'] = listeners
         started.append((node.executable, parameters))
