@@ -110,7 +110,7 @@ def winners_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str)
             continue
         best, second = ranked[:2]
         mean, low, high = paired_difference(evaluated[best], evaluated[second], metric)
-        decided = sign * low > 0 if higher else sign * high > 0
+        decided = low > 0 if higher else high < 0   # best - runner-up, away from 0 in the better direction
         lines.append(f'| {metric} ({"higher" if higher else "lower"}) | {best} | '
                      f'{means[best]:.4g} | {second} | '
                      f'{mean:+.4g} [{low:+.4g}, {high:+.4g}] | '
@@ -257,6 +257,14 @@ def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[s
     return lines
 
 
+def budget_words(budget: dict | None) -> str:
+    """What every learned method got alike, in words: environment steps, or RL episodes."""
+    steps = (budget or {}).get('environment_steps')
+    if steps:
+        return f'environment steps ({steps} RL decisions a run, ending with the episode that reaches them)'
+    return 'RL episodes (the environment steps each used differ: see the training table)'
+
+
 def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learned: dict[str, list[str]],
                      drivers: Sequence[str], modes: Sequence[str], training_mode: str, max_steps: int,
                      command: str, budget: dict | None, left_out: Sequence[str] = ()) -> Path:
@@ -274,8 +282,7 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
     if learned:
         sections += [
             (f'Learned methods are trained on the base scenario for the mode {training_mode} with '
-             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of RL episodes (the '
-             f'environment steps each used differ: see the training table) and our '
+             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of {budget_words(budget)} and our '
              f'measures (shield, decision interval, lane planner, demonstrations of the rule-based driver and '
              f'pre-training on them); a method\'s episodes are averaged over its training seeds per test seed. '
              f'A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '

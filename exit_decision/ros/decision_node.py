@@ -49,7 +49,7 @@ from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
-                                      describe, run_node, spin, take_waiting)
+                                      describe, run_node, take_waiting)
 from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
@@ -361,8 +361,7 @@ class DecisionNode(Node):
 
 
 def main() -> int:
-    # its streams' queues emptied at once: a flood costs each message a check, not a pass of the executor
-    return run_node('decision_node', DecisionNode, spin)
+    return run_node('decision_node', DecisionNode)
 
 
 if __name__ == '__main__':
