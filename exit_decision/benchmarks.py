@@ -1,6 +1,7 @@
 """Benchmark commands: figures printed, never asserted in tests."""
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -130,15 +131,17 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     the bridge's first step (it waits for the decision node's commands publisher, which comes
     once the policies are loaded) and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
     real-time factor and, for each decision step, the time from receiving the states to
-    receiving the commands that answer them."""
+    receiving the commands that answer them; and each process's CPU time per step over those
+    steps (from /proc: where the cores' time goes, which wall-clock figures on a shared
+    machine hide)."""
     import tempfile
 
     import numpy as np
-    from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
+    from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
-    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
     from exit_decision.ros.stack_nodes import BRIDGE, plan
     from exit_decision.step_gaps import episode_and_step
@@ -147,6 +150,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     # observer's own executor, which may lag on 2 busy cores, does not count)
     states_at: dict[tuple[int, int], float] = {}
     commands_at: dict[tuple[int, int], float] = {}
+    graphs_at: dict[tuple[int, int], float] = {}
     counted = {'states': 0, 'step_length': 0.0}   # states received since the first command
     probe = ProbeNode('bench_observer')
     node = probe.node
@@ -161,10 +165,15 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     def on_commands(raw: bytes, info) -> None:
         commands_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
 
+    def on_graph(raw: bytes, info) -> None:
+        graphs_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
+
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)
+    node.create_subscription(TrafficGraph, GRAPH_TOPIC, on_graph, STREAM_QOS, raw=True)
     parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
     answered = {'at': 0.0}
+    cpu_at_first_command: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
                         'policy_dir': policy_dir}, extra_listeners=1)
@@ -189,15 +198,27 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                     pending = parameters_client.call_async(GetParameters.Request(names=['mode']))
                 if pending is not None and not answered['at'] and pending.done():   # polled: no executor task late
                     answered['at'] = time.time()
+                if commands_at and not cpu_at_first_command:
+                    cpu_at_first_command = process_cpu_seconds(launcher)
                 probe.spin_once(0.01)
+            cpu_used = {name: seconds - cpu_at_first_command.get(name, 0.0)
+                        for name, seconds in process_cpu_seconds(launcher).items()}
         finally:
             launcher.stop()
             probe.close()
     first_command = min(commands_at.values())
     window = sorted(at for at in states_at.values() if at >= first_command)[:steps + 1]
     elapsed, measured = window[-1] - window[0], len(window) - 1
-    latency = np.array([(at - states_at[key]) * 1000 for key, at in commands_at.items()
-                        if key in states_at and window[0] <= states_at[key] <= window[-1]])
+    answered_steps = [key for key in commands_at if key in states_at and key in graphs_at
+                      and window[0] <= states_at[key] <= window[-1]]
+
+    def milliseconds(later: dict, earlier: dict) -> np.ndarray:
+        return np.array([(later[key] - earlier[key]) * 1000 for key in answered_steps])
+
+    def spread(values: np.ndarray) -> str:
+        return f'median {np.median(values):.2f} ms, p99 {np.percentile(values, 99):.2f} ms'
+
+    latency = milliseconds(commands_at, states_at)
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     return '\n'.join([
         (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, {measured} steps '
@@ -206,4 +227,24 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
          f'the bridge\'s first step after {min(states_at.values()) - decision_start:.2f} s, '
          f'first command after {first_command - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
-        f'  states -> commands latency: median {np.median(latency):.2f} ms, p99 {np.percentile(latency, 99):.2f} ms'])
+        f'  states -> commands latency: {spread(latency)}',
+        f'    of which states -> graph (graph_builder): {spread(milliseconds(graphs_at, states_at))}; '
+        f'graph -> commands (decision_node): {spread(milliseconds(commands_at, graphs_at))}',
+        '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
+                                            sorted(cpu_used.items(), key=lambda item: -item[1])) +
+        f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {os.cpu_count() * 1000 * elapsed / measured:.2f} '
+        f'that {os.cpu_count()} cores have per step at this rate)'])
+
+
+def process_cpu_seconds(launcher) -> dict[str, float]:
+    """CPU time (user + system) each running process of the launcher has used, and this
+    process's own (``observer``: the benchmark's probe), read from /proc."""
+    ticks = os.sysconf('SC_CLK_TCK')
+    used = {'observer': time.process_time()}
+    for name, process in launcher.processes.items():
+        try:
+            fields = Path(f'/proc/{process.pid}/stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:   # it has ended
+            continue
+        used[name] = (int(fields[11]) + int(fields[12])) / ticks   # utime, stime (fields 14, 15 of stat)
+    return used

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 from pathlib import Path
 
@@ -20,10 +21,6 @@ def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--override', type=Path, action='append', default=[],
                         help='YAML keyed by config file (env:, graph:, training:, ...) merged over the '
                              'config (repeatable)')
-
-
-def argv_is_cli() -> bool:
-    return len(sys.argv) > 1 and sys.argv[1] == 'run'
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -63,9 +60,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f'peak vehicles on the road at one step: {peak} (the graph holds N = {config.graph.max_vehicles})')
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
-        command = 'exit-decision ' + ' '.join(sys.argv[1:]) if argv_is_cli() else 'exit-decision run'
         args.markdown.write_text(
-            f'# {title}\n\nMade by `{command}` (mean ± std over episodes).\n\n{table}\n\n'
+            f'# {title}\n\nMade by `{args.invocation}` (mean ± std over episodes).\n\n{table}\n\n'
             f'## Configuration\n\n```json\n{config.model_dump_json(indent=2)}\n```\n', encoding='utf-8')
         print(f'table and configuration: {args.markdown}')
     if args.csv:
@@ -118,7 +114,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         show = ShowEpisodes(args.out / 'show', min(args.show, args.episodes))
     table = evaluate_runs(config, policies=args.policy, drivers=args.driver, modes=modes, episodes=args.episodes,
                           sanity_drivers=sanity_drivers, show=show,
-                          seed=args.seed, out_dir=args.out, command='exit-decision ' + ' '.join(sys.argv[1:]))
+                          seed=args.seed, out_dir=args.out, command=args.invocation)
     print(table)
     if show:
         print(f'time-space diagrams and bird\'s-eye clips of the first {show.episodes} episode(s) of each run: '
@@ -154,7 +150,7 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
             print(calibrate(read_rows(episodes), config, variant, next(iter(drivers)), expect))
         return 0
     print(write_sanity(config, sweep, list(range(args.seed, args.seed + args.episodes)), variants, args.jobs,
-                       args.out, 'exit-decision ' + ' '.join(sys.argv[1:])))
+                       args.out, args.invocation))
     return 0
 
 
@@ -305,7 +301,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     report = write_comparison(args.out, args.report or args.out / 'comparison.md', list(configs), learned,
                               sorted({cell.method for cell in cells if cell.method not in trained}),
                               modes, training_mode, base.scenario.max_steps,
-                              'exit-decision ' + ' '.join(sys.argv[1:]), budget,
+                              args.invocation, budget,
                               [method for method in base.training.method_names if method not in methods])
     if methods:
         print('training: ' + trainings.summary())
@@ -565,7 +561,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.invocation = 'exit-decision ' + shlex.join(argv)   # what the outputs say made them
     try:
         return args.func(args)
     except (ConfigError, PolicyError, UsageError) as error:

@@ -1,4 +1,5 @@
 """Scenario variants (config/variants.yaml) and the compare sweep on a local Ray."""
+import json
 import re
 
 import pytest
@@ -6,7 +7,7 @@ import yaml
 
 from exit_decision.cli import main
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.experiments.compare import load_variants
+from exit_decision.experiments.compare import Job, SweepResult, load_variants, run_on_ray
 from exit_decision.scenario.sumo_inputs import network_sources, routes_source
 
 HUMANS = ('HV1', 'HV2', 'HV3')
@@ -87,13 +88,13 @@ def test_compare_writes_a_csv_per_cell_reports_a_failing_cell_and_a_rerun_skips_
     assert '## tiny' in (out / 'comparison.md').read_text()
 
 
-def test_compare_trains_a_learned_method_and_reports_it_with_its_curve(tmp_path, capsys):
+def test_compare_trains_a_learned_method_on_a_budget_of_steps_and_reports_it_with_its_curve(tmp_path, capsys):
     variants, override, training, out = (tmp_path / name for name in ('variants.yaml', 'graph.yaml',
                                                                        'comparison.yaml', 'out'))
     variants.write_text(yaml.safe_dump({'cells': {'tiny': TINY}}))
     override.write_text(yaml.safe_dump({'graph': {'max_vehicles': 12}, 'scenario': TINY}))
     training.write_text(yaml.safe_dump({'training_mode': 'CONP', 'seeds': [0], 'budget': {
-        'episodes': 2, 'warmup_decisions': 10, 'replay_size': 2000, 'batch_size': 8,
+        'episodes': 50, 'environment_steps': 100, 'warmup_decisions': 10, 'replay_size': 2000, 'batch_size': 8,
         'demonstrations': {'episodes': 1, 'pretrain_updates': 20},
         'validation': {'every_episodes': 2, 'episodes': 1, 'parallel': False}}}))
     command = ['compare', '--variants', str(variants), '--override', str(override), '--train', 'dqn',
@@ -106,6 +107,10 @@ def test_compare_trains_a_learned_method_and_reports_it_with_its_curve(tmp_path,
                                                                          'sumo_CONP.csv']
     page = (out / 'comparison.md').read_text()
     assert '| dqn |' in page and 'dqn > rule_based (learned > rule-based)' in page
+    assert 'the same budget of environment steps (100 RL decisions a run' in page
+    assert f'Made by `exit-decision compare --variants {variants} ' in page, 'the command as given, not pytest\'s'
+    timing = json.loads((out / 'training' / 'dqn_s0' / 'timing.json').read_text())
+    assert timing['decisions'] >= 100 and timing['episodes'] < 50, 'the steps budget ends the RL phase'
     assert (out / 'comparison_learning_curves.png').stat().st_size > 0
     assert main(command) == 0, 'a rerun reuses the trained run and the done cells'
     assert 'training: 1 training runs: 0 run now, 1 already done' in capsys.readouterr().out
@@ -161,3 +166,22 @@ def test_a_claim_says_how_far_its_training_runs_spread_and_when_they_disagree():
     # averaged over the runs SGRL leads by 2 on every test seed; single runs range from 2 - 3 to 6 - 1
     assert 'return difference +2.000 [+2.000, +2.000]; training runs: -1.000 to +5.000 (they disagree in sign)' in line
     assert line.endswith('**holds**')
+
+
+def test_a_task_that_raises_once_is_retried_in_a_new_worker_and_counts_as_done(tmp_path):
+    marker = tmp_path / 'attempted'
+
+    def raises_the_first_time(path: str) -> str:   # nested: Ray ships it by value
+        from pathlib import Path
+        if not Path(path).exists():
+            Path(path).touch()
+            raise RuntimeError('the first attempt fails')
+        return 'the second attempt'
+
+    got = []
+    job = Job('flaky', raises_the_first_time, (str(marker),), got.append)
+    result = run_on_ray([job], SweepResult(cells=1), None, 1, 1, False)
+    assert (result.done, result.failed, got) == (1, {}, ['the second attempt'])
+    marker.unlink()
+    result = run_on_ray([job], SweepResult(cells=1), None, 1, 0, False)
+    assert result.done == 0 and 'the first attempt fails' in result.failed['flaky']

@@ -436,51 +436,67 @@ def bad_messages(latest: VehicleStateArray) -> list:
 FLOOD_RATE = 1000   # [msg/s] bad messages sent while the stack runs: the rate that starved the commands (issue 12)
 
 
-def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
-    """The issue's bad messages, and a flood of them (FLOOD_RATE msg/s, two thirds on the states
-    topic, a third on the commands topic), sent to a running synchronous stack: every node lives,
-    counts what it rejected, and the stack decides on every decision step with no command timeout."""
+def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, dict]:
+    """Graph builder, decision node and a synchronous bridge for one episode (seed 10000), with
+    or without the flood of bad messages; its end event, the nodes' counters and the commands
+    the decision node sent, per step."""
     root, config_dir = setup['root'], setup['config_dir']
-    test = ProbeNode('fuzz_test')
-    counters = {name: diagnostics_of(test, name) for name in ('sumo_bridge', 'graph_builder', 'decision_node')}
-    latest, ended = [], []
+    test = ProbeNode(f'{name}_test')
+    counters = {node: diagnostics_of(test, node) for node in ('sumo_bridge', 'graph_builder', 'decision_node')}
+    latest, ended, decided = [], [], {}
     test.node.create_subscription(VehicleStateArray, STATES_TOPIC,
                                   lambda m: latest.append(m) if m.header.frame_id != 'fuzz' else None, STREAM_QOS)
     test.node.create_subscription(EpisodeEvent, EPISODE_TOPIC,
                                   lambda m: ended.append(m) if m.event == EpisodeEvent.EVENT_ENDED else None,
                                   EVENT_QOS)
+    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, lambda m: decided.update(
+        {m.step: [(c.vehicle_id, c.lane_change, c.acceleration) for c in m.commands]}) if m.algorithm != 'fuzz' else None,
+        STREAM_QOS)
     states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
-    nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / 'graph_fuzz.log'),
+    nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / f'graph_{name}.log'),
              start_node('decision_node', {'config_dir': config_dir, 'policy_dir': setup['policies']},
-                        root / 'decision_fuzz.log')]
+                        root / f'decision_{name}.log')]
     nodes.append(start_node('sumo_bridge', {'config_dir': config_dir, 'episodes': 1, 'wait_for_subscribers': 3},
-                            root / 'bridge_fuzz.log'))
+                            root / f'bridge_{name}.log'))
     try:
         assert test.spin_until(lambda: latest, 90), 'the stack starts'
         sent, started = 0, time.monotonic()
         while not ended and time.monotonic() - started < 150:
-            batch = bad_messages(latest[-1])
-            for _ in range(min(len(batch), int((time.monotonic() - started) * FLOOD_RATE) - sent)):
-                msg = batch[sent % len(batch)]
-                (states if isinstance(msg, VehicleStateArray) else commands).publish(msg)
-                sent += 1
+            if flood:
+                batch = bad_messages(latest[-1])
+                for _ in range(min(len(batch), int((time.monotonic() - started) * FLOOD_RATE) - sent)):
+                    msg = batch[sent % len(batch)]
+                    (states if isinstance(msg, VehicleStateArray) else commands).publish(msg)
+                    sent += 1
             test.executor.spin_once(timeout_sec=0.002)
         assert ended, 'the episode ends'
         test.spin_until(lambda: False, 1.5)                   # the last diagnostics
         assert all(process.poll() is None for process in nodes[:2]), 'graph builder and decision node live'
         assert nodes[2].wait(30) == 0
-        steps, interval = ended[0].steps, load_project(config_dir).env.decision_interval
-        bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
-        assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {counters}'
-        assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
-        assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
-        assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
-        assert decision['rejected_out_of_sequence_states'] > 0, decision
     finally:
         test.close()
         for process in nodes:
             stop(process)
+    return ended, counters, decided
+
+
+def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
+    """The issue's bad messages, and a flood of them (FLOOD_RATE msg/s, two thirds on the states
+    topic, a third on the commands topic), sent to a running synchronous stack: every node lives,
+    counts what it rejected, and decides every decision step exactly as without them, with no
+    command timeout."""
+    _, _, clean = run_synchronous_episode(setup, 'clean', flood=False)
+    ended, counters, decided = run_synchronous_episode(setup, 'fuzz', flood=True)
+    steps, interval = ended[0].steps, load_project(setup['config_dir']).env.decision_interval
+    bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
+    assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {counters}'
+    assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
+    assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
+    assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
+    assert decision['rejected_states'] > 0 and decision['rejected_out_of_sequence_states'] > 0, decision
+    assert len(clean) >= steps // interval and any(clean.values()), 'the clean run decided every decision step'
+    assert decided == clean, 'the same commands on every decision step as in the run without bad messages'
 
 
 @pytest.mark.parametrize('node, parameters, expected', [
@@ -516,6 +532,8 @@ def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, no
     ('visualizer', {}, {'config_dir': '/tmp'}, {'max_rate': 5.0}),
     ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}),
     ('graph_builder', {}, {'config_dir': '/tmp'}, {}),
+    ('decision_node', {'policy_dir': 'POLICIES'},
+     {'policy_dir': '/tmp', 'modes': ['CONP'], 'algorithms': ['gqn'], 'config_dir': '/tmp'}, {'mode': 'CONP'}),
 ])
 def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp_path, node, parameters, fixed, live):
     """Through the set_parameters service (`ros2 param set`): a parameter a node uses only at
@@ -523,6 +541,8 @@ def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp
     parameters = {'config_dir': setup['config_dir'], **parameters}
     if parameters.get('bag_path') == 'BAG':
         parameters['bag_path'] = str(tmp_path / 'bag')
+    if parameters.get('policy_dir') == 'POLICIES':
+        parameters['policy_dir'] = str(setup['policies'])
     process = start_node(node, parameters, tmp_path / 'node.log')
     test = ProbeNode('read_only_test')
     try:
@@ -537,6 +557,37 @@ def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp
     finally:
         test.close()
         stop(process)
+
+
+def test_the_bridges_live_parameters_change_what_it_does_at_once(setup, tmp_path):
+    """``realtime_factor`` changes the pace of the next steps and ``episodes`` ends the run after
+    the episode that is running: set through set_parameters, not just stored."""
+    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'timing': 'realtime', 'cav_driver': 'sumo',
+                                        'realtime_factor': 1.0, 'episodes': 0, 'wait_for_subscribers': 1},
+                        tmp_path / 'bridge.log')
+    test = ProbeNode('live_parameters_test')
+    arrivals = []
+    test.node.create_subscription(VehicleStateArray, STATES_TOPIC, lambda _: arrivals.append(time.monotonic()),
+                                  STREAM_QOS)
+
+    def steps_per_second(seconds: float) -> float:
+        start = len(arrivals)
+        test.spin_until(lambda: False, seconds)
+        return (len(arrivals) - start) / seconds
+    try:
+        assert test.spin_until(lambda: len(arrivals) > 5, 60), 'the bridge steps'
+        slow = steps_per_second(2.0)
+        assert set_parameter(test, 'sumo_bridge', 'realtime_factor', 20.0).successful
+        test.spin_until(lambda: False, 0.3)
+        fast = steps_per_second(2.0)
+        assert 5 < slow < 15 and fast > 5 * slow, (slow, fast)   # 10 steps/s at 1x (0.1 s steps)
+        assert set_parameter(test, 'sumo_bridge', 'realtime_factor', 1000.0).successful
+        assert set_parameter(test, 'sumo_bridge', 'episodes', 1).successful
+        assert bridge.wait(120) == 0, 'it ended after the episode that was running'
+    finally:
+        test.close()
+        stop(bridge)
+    assert 'all episodes done' in (tmp_path / 'bridge.log').read_text()
 
 
 def write_episode_bag(bag, config_dir, steps: int = 40) -> int:

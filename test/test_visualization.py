@@ -214,16 +214,23 @@ def test_show_command_writes_beside_the_bag_and_refuses_bad_input_in_one_line(la
     assert exit_.value.code == 2 and "'0': expected a number > 0" in capsys.readouterr().err
 
 
-def first_markers(test, publisher, arrays) -> None:
-    """Wait for the visualizer to subscribe, then send step 0 again (the same frame each time)
-    until the markers reader is matched too and the first array arrives."""
+def first_markers(test, publisher, arrays) -> int:
+    """Start episode 0 (as the bridge does), wait for the visualizer to subscribe, then send the
+    same vehicles at steps 0, 1, ... until the markers reader is matched too and the first array
+    arrives; the last step sent."""
+    from exit_decision_msgs.msg import EpisodeEvent
+
+    from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS
     from exit_decision.ros.conversions import states_to_msg
 
+    events = test.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
+    events.publish(EpisodeEvent(episode=0, event=EpisodeEvent.EVENT_STARTED))   # transient local: it reaches a late joiner
     assert test.spin_until(lambda: publisher.get_subscription_count() > 0, 30), 'the visualizer subscribes'
-    for _ in range(40):
-        publisher.publish(states_to_msg(snapshot(), episode=0, step=0, step_length=STEP))
+    for step in range(40):
+        publisher.publish(states_to_msg(snapshot(), episode=0, step=step, step_length=STEP))
         if test.spin_until(lambda: arrays, 0.5):
-            return
+            return step
+    raise AssertionError('no markers')
 
 
 def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
@@ -241,9 +248,8 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     publisher = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     node = start_node('visualizer', {'max_rate': 0.0}, tmp_path / 'visualizer.log')
     try:
-        first_markers(test, publisher, arrays)
-        assert arrays, 'markers for the vehicle states'
-        publisher.publish(states_to_msg(snapshot()[:3], episode=0, step=1, step_length=STEP))
+        step = first_markers(test, publisher, arrays)
+        publisher.publish(states_to_msg(snapshot()[:3], episode=0, step=step + 1, step_length=STEP))
         assert test.spin_until(lambda: any(m.action == Marker.DELETE for m in arrays[-1].markers), 10)
     finally:
         test.close()
@@ -272,15 +278,54 @@ def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
     def boxes():
         return sum(m.ns == 'vehicles' and m.action == m.ADD for m in arrays[-1].markers)
     try:
-        first_markers(test, publisher, arrays)
-        assert arrays and boxes() == 5
+        step = first_markers(test, publisher, arrays)
+        assert boxes() == 5
         sent = len(arrays)
-        for step, count in ((1, 4), (2, 3)):   # within the rate limit of the first: both held back
-            publisher.publish(states_to_msg(snapshot()[:count], episode=0, step=step, step_length=STEP))
+        for later, count in ((1, 4), (2, 3)):   # within the rate limit of the first: both held back
+            publisher.publish(states_to_msg(snapshot()[:count], episode=0, step=step + later, step_length=STEP))
         assert test.spin_until(lambda: len(arrays) > sent and boxes() == 3, 20), 'the last one comes after all'
     finally:
         test.close()
         stop(node)
+
+
+def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_and_draws_on(tmp_path):
+    """A states message of another episode, one whose lane the road does not have, and one
+    out of step order are each refused whole: the next good one is drawn as if they never came."""
+    from exit_decision_msgs.msg import VehicleStateArray
+    from visualization_msgs.msg import MarkerArray
+
+    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.launcher import start_node
+    from ros_helpers import stop
+    from test_ros_stack import diagnostics_of
+
+    test = ProbeNode('visualizer_reject_test')
+    arrays = []
+    test.node.create_subscription(MarkerArray, MARKERS_TOPIC, arrays.append, STREAM_QOS)
+    counters = diagnostics_of(test, 'visualizer')
+    publisher = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+    node = start_node('visualizer', {'max_rate': 0.0}, tmp_path / 'visualizer.log')
+
+    def boxes():
+        return sorted(m.text for m in arrays[-1].markers if m.ns == 'vehicle_ids' and m.action == m.ADD)
+    try:
+        step = first_markers(test, publisher, arrays)
+        drawn = len(arrays)
+        bad_lane = [dataclasses.replace(v, lane_index=127) if v.vehicle_id == 'CAV_0' else v for v in snapshot()]
+        for episode, at, vehicles in ((1000, step + 1, snapshot()[:1]), (0, step + 1, bad_lane),
+                                      (0, step, snapshot()[:2])):
+            publisher.publish(states_to_msg(vehicles, episode=episode, step=at, step_length=STEP))
+        publisher.publish(states_to_msg(snapshot()[:4], episode=0, step=step + 1, step_length=STEP))
+        assert test.spin_until(lambda: len(arrays) > drawn, 10)
+        assert test.spin_until(lambda: counters.get('rejected_out_of_sequence_states') == 2
+                               and counters.get('rejected_states') == 1, 10), counters
+    finally:
+        test.close()
+        stop(node)
+    assert len(arrays) == drawn + 1, 'only the good message was drawn'
+    assert boxes() == sorted(v.vehicle_id for v in snapshot()[:4])
 
 
 def test_evaluate_show_draws_the_first_episodes_of_a_run_without_ros(tmp_path):

@@ -188,28 +188,40 @@ def drop_table(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]
 
 
 def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path) -> Path | None:
-    """Every learned method's training return (mean over its seeds, rolling mean) on one figure,
-    with the teacher's validation return as a line."""
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    """Every learned method's training return against the RL decisions it has taken (the unit
+    of the budget; methods' episodes differ in length), mean over its seeds on a common grid
+    of decisions, rolling mean over a tenth of it (plotted at each window's end); the rows with
+    our measures above, the as-published ones below (their returns are on another scale), a
+    method and its published row in one colour; the teacher's validation return as a line."""
+    fig, axes = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
+    colours = plt.get_cmap('tab10').colors
+    bases = list(dict.fromkeys(method.removesuffix(PUBLISHED_SUFFIX) for method in learned))
     teacher = []
     for method, run_names in learned.items():
         curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
                   if (training_dir / name / 'training.csv').is_file()]
-        curves = [c['reward'] for c in curves if c]
+        curves = [c for c in curves if len(c.get('reward', ())) > 1]
         if not curves:
             continue
-        length = min(len(c) for c in curves)
-        ax.plot(rolling(np.mean([c[:length] for c in curves], axis=0)), label=f'{method} ({len(curves)} seeds)')
+        grid = np.linspace(0, min(c['decisions'][-1] for c in curves), 200)
+        smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0), 20)
+        published = method.endswith(PUBLISHED_SUFFIX)
+        base = bases.index(method.removesuffix(PUBLISHED_SUFFIX))
+        axes[int(published)].plot(grid[len(grid) - len(smoothed):], smoothed, color=colours[base % len(colours)],
+                                  linestyle=('-', '--', ':')[base // len(colours) % 3],
+                                  label=f'{method} ({len(curves)} seeds)')
         validations = [training_dir / name / 'validation.csv' for name in run_names]
         teacher += [float(r['teacher_return']) for path in validations if path.is_file() for r in read_rows(path)]
-    if not ax.lines:
+    if not any(ax.lines for ax in axes):
         plt.close(fig)
         return None
-    if teacher:
-        ax.axhline(float(np.mean(teacher)), color='black', linestyle='--', label='teacher (validation seeds)')
-    ax.set_xlabel('RL episode (after pre-training)')
-    ax.set_ylabel('episode return, training mode (rolling mean)')
-    ax.legend(fontsize=7, ncol=2)
+    for ax, title in zip(axes, ('with our measures', 'as published')):
+        if teacher:
+            ax.axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel('episode return, training mode')
+        ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
+    axes[-1].set_xlabel('RL decisions (after pre-training)')
     return save(fig, out)
 
 
@@ -218,8 +230,10 @@ def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, flo
     """Return under the training mode per method across the variants, with 95% intervals."""
     variants = list(per_variant)
     methods = sorted({m for runs in per_variant.values() for m in runs})
+    if not methods:
+        return None
     fig, ax = plt.subplots(figsize=(9, 4.5))
-    width = 0.8 / max(len(methods), 1)
+    width = 0.8 / len(methods)
     for i, method in enumerate(methods):
         xs, means, errors = [], [], []
         for j, variant in enumerate(variants):
@@ -239,7 +253,8 @@ def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, flo
 def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[str]:
     """Per method: training wall time and the environment it used (RL episodes, simulation
     steps and decisions of the RL phase), means over its seeds."""
-    header = ('| method | training wall time per 100 RL episodes [s] | total per run [s] | RL episodes | '
+    header = ('| method | training wall time per 100 RL episodes, validation included [s] | total per run [s] | '
+              'RL episodes | '
               'simulation steps | decisions |')
     lines = [header, '|---' * 6 + '|']
     for method, run_names in learned.items():
@@ -261,7 +276,9 @@ def budget_words(budget: dict | None) -> str:
     """What every learned method got alike, in words: environment steps, or RL episodes."""
     steps = (budget or {}).get('environment_steps')
     if steps:
-        return f'environment steps ({steps} RL decisions a run, ending with the episode that reaches them)'
+        return (f'environment steps ({steps} RL decisions a run, ending with the episode that reaches them; '
+                f'`episodes` below is only a cap, and a decay given in steps, `*_steps`, replaces the one in '
+                f'episodes)')
     return 'RL episodes (the environment steps each used differ: see the training table)'
 
 
@@ -282,10 +299,10 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
     if learned:
         sections += [
             (f'Learned methods are trained on the base scenario for the mode {training_mode} with '
-             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of {budget_words(budget)} and our '
-             f'measures (shield, decision interval, lane planner, demonstrations of the rule-based driver and '
-             f'pre-training on them); a method\'s episodes are averaged over its training seeds per test seed. '
-             f'A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '
+             f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of {budget_words(budget)}; '
+             f'a method\'s episodes are averaged over its training seeds per test seed. A row without a suffix '
+             f'has our measures (shield, decision interval, lane planner, demonstrations of the rule-based driver '
+             f'and pre-training on them). A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '
              f'(config/reward.yaml) with its paper\'s exploration and no demonstrations, and drives, in training '
              f'and here, with only the lanes that exist masked and no lane planner; only the decision interval '
              f'stays ours. Every row is scored under the modes of the reward function matrix.'),

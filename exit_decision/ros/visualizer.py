@@ -9,6 +9,11 @@ collisions, a frame with no vehicles is always sent, and the newest frame held b
 when the rate allows (so the last one is never lost). At an episode's end the status text
 gets the bridge's collision count. Open the topic (or a recorded bag) in RViz or Foxglove
 with fixed frame ``map``.
+
+As the other nodes, it starts an episode's frames on the bridge's (or the player's)
+EVENT_STARTED only, takes a states message only if it can follow the current episode and step
+(``StepGate``) and every field fits the scenario (``conversions.checked_states``), and
+otherwise rejects it whole and counts it on /diagnostics: a bad message changes no frame.
 """
 from __future__ import annotations
 
@@ -41,13 +46,15 @@ from exit_decision.ros.common import (
     describe,
     follow,
     run_node,
+    take_waiting,
 )
+from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.ros.conversions import (
     MessageError,
+    checked_states,
     commands_from_msg,
     graph_from_msg,
     overrides_from_msg,
-    states_from_msg,
 )
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
@@ -89,8 +96,10 @@ class Visualizer(Node):
             float_range=(0.0, 1000.0)))
         follow(self, 'max_rate')
         road = config.scenario.road
-        layout = RoadLayout.of(RoadGeometry.of(road), road)
-        self.highway_edges = road.names.sections
+        geometry = RoadGeometry.of(road)
+        layout = RoadLayout.of(geometry, road)
+        self.limits = StateLimits.of(config, geometry)
+        self.gate = StepGate(config.scenario.max_steps)
         self.frames = FrameBuilder(layout, config.scenario.step_length)
         self.scene = MarkerScene(layout)
         self.overrides: int | None = None
@@ -100,23 +109,30 @@ class Visualizer(Node):
         self.trailing = None                                # the one-shot timer that sends it
         self.markers: dict = {}   # Marker messages reused frame to frame (marker_array)
         self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
+        # events first: when an episode's start and its first states are both waiting, the
+        # node's wait (common.Waiter) empties the queue of the subscription created first first
+        self.events = self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
         self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS)
         self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
         self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
         self.create_subscription(ShieldOverrideArray, OVERRIDES_TOPIC, self.on_overrides, STREAM_QOS)
-        self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, msg: VehicleStateArray) -> None:
+        if msg.episode != self.gate.episode:
+            take_waiting(self.events)   # its EVENT_STARTED came first (from the same bridge or player)
+        reason = self.gate.refuse(msg.episode, msg.step)
+        if reason:
+            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+            return
         try:
-            vehicles = states_from_msg(msg, self.highway_edges)
-        except MessageError as error:
+            vehicles = checked_states(msg, self.limits)
+        except InputError as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
-        if msg.episode != self.frames.episode:
-            self.frames.reset(msg.episode)
+        self.gate.accept(msg.step)
         frame = self.frames.add(msg.step, vehicles, overrides=self.overrides)
         self.last = frame, msg.header.stamp
         wait = self.last_sent + 1.0 / self.max_rate - time.monotonic() if self.max_rate and vehicles else 0.0
@@ -146,7 +162,12 @@ class Visualizer(Node):
             self.send(*self.held_back)
 
     def on_episode(self, msg: EpisodeEvent) -> None:
-        """At the end of the shown episode: its last frame again, with the bridge's collision count."""
+        """A start begins the episode's frames; at the end of the shown episode: its last frame
+        again, with the bridge's collision count."""
+        if msg.event == EpisodeEvent.EVENT_STARTED:
+            self.gate.start(msg.episode)
+            self.frames.reset(msg.episode)
+            return
         if msg.event != EpisodeEvent.EVENT_ENDED or msg.episode != self.frames.episode or self.last is None:
             return
         if self.held_back is not None:
