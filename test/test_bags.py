@@ -6,6 +6,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
 from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -71,6 +72,10 @@ def test_a_killed_recording_is_repaired_up_to_its_last_complete_chunk(tmp_path, 
     assert f'recovered {len(steps)} messages' in out and 'lost: ' in out and 'the last 18 bytes of the file' in out, out
     with Reader(bag) as reader:
         assert reader.message_count == len(steps), 'a finished bag: summary and metadata.yaml'
+    with open(bag / 'bag.mcap', 'rb') as file:   # and for the mcap library's own reader (summary, chunk index)
+        reader = make_reader(file)
+        assert reader.get_summary().statistics.message_count == len(steps)
+        assert sum(1 for _ in reader.iter_messages()) == len(steps)
     assert (bag / 'bag.mcap.unfinished').exists(), 'the unfinished file is kept'
     with pytest.raises(BagError, match='nothing to repair'):
         repair_bag(bag)
