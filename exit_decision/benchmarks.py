@@ -220,6 +220,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
 
     latency = milliseconds(commands_at, states_at)
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
+    cores = len(os.sched_getaffinity(0))
     return '\n'.join([
         (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, {measured} steps '
          f'({len(latency)} decisions) from the first command'),
@@ -232,8 +233,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
         f'graph -> commands (decision_node): {spread(milliseconds(commands_at, graphs_at))}',
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
-        f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {os.cpu_count() * 1000 * elapsed / measured:.2f} '
-        f'that {os.cpu_count()} cores have per step at this rate)'])
+        f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {cores * 1000 * elapsed / measured:.2f} '
+        f'that {cores} cores have per step at this rate)'])
 
 
 def process_cpu_seconds(launcher) -> dict[str, float]:

@@ -171,17 +171,20 @@ def test_a_claim_says_how_far_its_training_runs_spread_and_when_they_disagree():
 def test_a_task_that_raises_once_is_retried_in_a_new_worker_and_counts_as_done(tmp_path):
     marker = tmp_path / 'attempted'
 
-    def raises_the_first_time(path: str) -> str:   # nested: Ray ships it by value
+    def raises_the_first_time(path: str) -> tuple[int, int]:   # nested: Ray ships it by value
+        import os
         from pathlib import Path
         if not Path(path).exists():
-            Path(path).touch()
+            Path(path).write_text(str(os.getpid()))
             raise RuntimeError('the first attempt fails')
-        return 'the second attempt'
+        return int(Path(path).read_text()), os.getpid()
 
     got = []
     job = Job('flaky', raises_the_first_time, (str(marker),), got.append)
     result = run_on_ray([job], SweepResult(cells=1), None, 1, 1, False)
-    assert (result.done, result.failed, got) == (1, {}, ['the second attempt'])
+    assert (result.done, result.failed, len(got)) == (1, {}, 1)
+    first, second = got[0]
+    assert first != second, 'the second attempt ran in another worker process'
     marker.unlink()
     result = run_on_ray([job], SweepResult(cells=1), None, 1, 0, False)
     assert result.done == 0 and 'the first attempt fails' in result.failed['flaky']

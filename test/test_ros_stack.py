@@ -16,7 +16,7 @@ from rclpy.parameter import parameter_value_to_python
 from exit_decision.config import load_project
 from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags import read_messages
-from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
+from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode)
 from exit_decision.ros.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
@@ -453,7 +453,7 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
                                   EVENT_QOS)
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, lambda m: decided.update(
         {m.step: [(c.vehicle_id, c.lane_change, c.acceleration) for c in m.commands]}) if m.algorithm != 'fuzz' else None,
-        STREAM_QOS)
+        COMMANDS_QOS)   # depth 1000: it also gets its own flood
     states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
     nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / f'graph_{name}.log'),
@@ -488,7 +488,7 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     topic, a third on the commands topic), sent to a running synchronous stack: every node lives,
     counts what it rejected, and decides every decision step exactly as without them, with no
     command timeout."""
-    _, _, clean = run_synchronous_episode(setup, 'clean', flood=False)
+    clean_end, _, clean = run_synchronous_episode(setup, 'clean', flood=False)
     ended, counters, decided = run_synchronous_episode(setup, 'fuzz', flood=True)
     steps, interval = ended[0].steps, load_project(setup['config_dir']).env.decision_interval
     bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
@@ -497,7 +497,8 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
     assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
     assert decision['rejected_states'] > 0 and decision['rejected_out_of_sequence_states'] > 0, decision
-    assert len(clean) >= steps // interval and any(clean.values()), 'the clean run decided every decision step'
+    assert clean_end[0].steps == steps and sorted(clean) == list(range(0, steps + 1, interval)) and any(
+        clean.values()), 'the clean run decided every decision step'
     assert decided == clean, 'the same commands on every decision step as in the run without bad messages'
 
 
@@ -562,15 +563,19 @@ def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp
 
 
 def test_the_bridges_live_parameters_change_what_it_does_at_once(setup, tmp_path):
-    """``realtime_factor`` changes the pace of the next steps and ``episodes`` ends the run after
-    the episode that is running: set through set_parameters, not just stored."""
+    """``realtime_factor`` changes the pace of the next steps and ``episodes`` (set below the
+    episodes run so far) ends the run after the episode that is running: set through
+    set_parameters, not just stored; a realtime bridge that cannot keep up with its factor
+    still answers."""
     bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'timing': 'realtime', 'cav_driver': 'sumo',
                                         'realtime_factor': 1.0, 'episodes': 0, 'wait_for_subscribers': 1},
                         tmp_path / 'bridge.log')
     test = ProbeNode('live_parameters_test')
-    arrivals = []
+    arrivals, ended = [], []
     test.node.create_subscription(VehicleStateArray, STATES_TOPIC, lambda _: arrivals.append(time.monotonic()),
                                   STREAM_QOS)
+    test.node.create_subscription(EpisodeEvent, EPISODE_TOPIC, lambda m: ended.append(m.episode)
+                                  if m.event == EpisodeEvent.EVENT_ENDED else None, EVENT_QOS)
 
     def steps_per_second(seconds: float) -> float:
         start = len(arrivals)
@@ -583,18 +588,22 @@ def test_the_bridges_live_parameters_change_what_it_does_at_once(setup, tmp_path
         test.spin_until(lambda: False, 0.3)
         fast = steps_per_second(2.0)
         assert 5 < slow < 15 and fast > 5 * slow, (slow, fast)   # 10 steps/s at 1x (0.1 s steps)
-        assert set_parameter(test, 'sumo_bridge', 'realtime_factor', 1000.0).successful
-        assert set_parameter(test, 'sumo_bridge', 'episodes', 1).successful
-        assert bridge.wait(120) == 0, 'it ended after the episode that was running'
+        assert set_parameter(test, 'sumo_bridge', 'realtime_factor', 1000.0).successful   # more than it can do
+        test.spin_until(lambda: False, 1.0)
+        assert set_parameter(test, 'sumo_bridge', 'episodes', 1).successful, 'answered while behind its schedule'
+        assert bridge.wait(30) == 0, 'it ended after the episode that was running (with episodes 0, never)'
+        test.spin_until(lambda: False, 1.0)
     finally:
         test.close()
         stop(bridge)
-    assert 'all episodes done' in (tmp_path / 'bridge.log').read_text()
+    assert ended == list(range(len(ended))) and 'all episodes done' in (tmp_path / 'bridge.log').read_text()
 
 
 def test_messages_a_stalled_node_never_took_are_counted_as_dropped_on_their_topic(setup, tmp_path):
     """A graph builder stopped (SIGSTOP) while 1500 states are sent with a resend history of
-    100: the ones overwritten before it could take them show as ``dropped_vehicle_states``."""
+    100: the ones overwritten before it could take them show as ``dropped_vehicle_states``, and
+    every message sent is either taken or counted lost, never both. (Decision steps only: the
+    others are not even read, so they are neither refused nor counted.)"""
     node = start_node('graph_builder', {'config_dir': setup['config_dir']}, tmp_path / 'graph_builder.log')
     test = ProbeNode('drops_test')
     counters = diagnostics_of(test, 'graph_builder')
@@ -604,14 +613,17 @@ def test_messages_a_stalled_node_never_took_are_counted_as_dropped_on_their_topi
         publisher.publish(VehicleStateArray(episode=0, step=0))
         assert test.spin_until(lambda: counters.get('rejected_out_of_sequence_states', 0) >= 1, 30), counters
         os.kill(node.pid, signal.SIGSTOP)
-        for step in range(1, 1501):
-            publisher.publish(VehicleStateArray(episode=0, step=step))
-        os.kill(node.pid, signal.SIGCONT)
-        assert test.spin_until(lambda: counters.get('dropped_vehicle_states', 0) > 0, 30), counters
-        test.spin_until(lambda: False, 2.0)   # the next diagnostics
-        # taken (and refused: no episode has started) or counted as lost, never both; what the
-        # middleware lost after the last message the node took shows only with a later one
-        assert counters['rejected_out_of_sequence_states'] + counters['dropped_vehicle_states'] <= 1501, counters
+        try:
+            for step in range(5, 7505, 5):
+                publisher.publish(VehicleStateArray(episode=0, step=step))
+        finally:
+            os.kill(node.pid, signal.SIGCONT)
+        test.spin_until(lambda: False, 2.0)
+        publisher.publish(VehicleStateArray(episode=0, step=7505))   # shows the gap before it, if the last were lost
+        # taken (and refused: no episode has started) or counted lost
+        assert test.spin_until(lambda: counters.get('rejected_out_of_sequence_states', 0) + counters.get(
+            'dropped_vehicle_states', 0) == 1502, 30), counters
+        assert counters['dropped_vehicle_states'] > 0, counters
     finally:
         test.close()
         stop(node)

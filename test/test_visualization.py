@@ -312,15 +312,17 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
         return sorted(m.text for m in arrays[-1].markers if m.ns == 'vehicle_ids' and m.action == m.ADD)
     try:
         step = first_markers(test, publisher, arrays)
-        drawn = len(arrays)
+        test.spin_until(lambda: False, 1.5)   # every array of the first steps, and the diagnostics after them
+        drawn, before = len(arrays), dict(counters)
         bad_lane = [dataclasses.replace(v, lane_index=127) if v.vehicle_id == 'CAV_0' else v for v in snapshot()]
         for episode, at, vehicles in ((1000, step + 1, snapshot()[:1]), (0, step + 1, bad_lane),
                                       (0, step, snapshot()[:2])):
             publisher.publish(states_to_msg(vehicles, episode=episode, step=at, step_length=STEP))
         publisher.publish(states_to_msg(snapshot()[:4], episode=0, step=step + 1, step_length=STEP))
         assert test.spin_until(lambda: len(arrays) > drawn, 10)
-        assert test.spin_until(lambda: counters.get('rejected_out_of_sequence_states') == 2
-                               and counters.get('rejected_states') == 1, 10), counters
+        assert test.spin_until(lambda: (
+            counters.get('rejected_out_of_sequence_states', 0) - before.get('rejected_out_of_sequence_states', 0),
+            counters.get('rejected_states', 0) - before.get('rejected_states', 0)) == (2, 1), 10), (before, counters)
     finally:
         test.close()
         stop(node)

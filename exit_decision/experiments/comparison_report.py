@@ -6,8 +6,9 @@ for every method, which makes the differences paired). Per variant: the metrics 
 section 6 (mean with 95% interval), each method against the neutral teacher under every
 mode, then the papers' claims as paired differences under the training mode, each said to
 hold, fail or stay unresolved by its interval; each method's drop from the base scenario;
-the learning curves of all learned methods on one figure (the teacher's validation return
-as a line) and their training wall time per 100 episodes.
+the learning curves of all learned methods on one figure, against the RL decisions taken
+(the budget's unit), the rows with our measures and the as-published ones in two panels (the
+teacher's validation return as a line), and their training wall time per 100 episodes.
 """
 from __future__ import annotations
 
@@ -200,10 +201,10 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
     for method, run_names in learned.items():
         curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
                   if (training_dir / name / 'training.csv').is_file()]
-        curves = [c for c in curves if len(c.get('reward', ())) > 1]
+        curves = [increasing_decisions(c) for c in curves if len(c.get('reward', ())) > 1]
         if not curves:
             continue
-        grid = np.linspace(0, min(c['decisions'][-1] for c in curves), 200)
+        grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves), 200)
         smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0), 20)
         published = method.endswith(PUBLISHED_SUFFIX)
         base = bases.index(method.removesuffix(PUBLISHED_SUFFIX))
@@ -215,14 +216,22 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
     if not any(ax.lines for ax in axes):
         plt.close(fig)
         return None
-    for ax, title in zip(axes, ('with our measures', 'as published')):
-        if teacher:
-            ax.axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
+    if teacher:   # on the matrix's reward, which only the rows with our measures learn from
+        axes[0].axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
+    for ax, title in zip(axes, ('with our measures', 'as published (each learns from its paper\'s reward)')):
         ax.set_title(title, fontsize=9)
         ax.set_ylabel('episode return, training mode')
         ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
     axes[-1].set_xlabel('RL decisions (after pre-training)')
     return save(fig, out)
+
+
+def increasing_decisions(curve: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A training log's rows whose decision count exceeds every row's before it (a run resumed
+    from its last checkpoint logs the episodes after it again, counting from there)."""
+    decisions = curve['decisions']
+    kept = decisions > np.concatenate([[-np.inf], np.maximum.accumulate(decisions)[:-1]])
+    return {name: values[kept] for name, values in curve.items()}
 
 
 def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], mode: str,

@@ -295,6 +295,14 @@ class Waiter:
             self.executor.spin_once(timeout_sec=0.0)
 
 
+    def keep_serving(self) -> None:
+        """For a loop that may not wait for a while (a realtime bridge behind its schedule): a
+        pass without waiting if the executor has had none for ``EXECUTOR_PERIOD``, so services
+        (``ros2 param set``) are still answered."""
+        if time.monotonic() - self.executor_passed >= self.EXECUTOR_PERIOD:
+            self.spin_once(0.0)
+
+
 class ProbeNode:
     """A node inside a non-ROS program (the launcher, a benchmark, a test) with its own
     context and executor, so it never touches the global rclpy context."""

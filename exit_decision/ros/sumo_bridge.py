@@ -200,6 +200,8 @@ class SumoBridge(Node):
                 commands = self.wait_for_commands(result.step) if result.step % self.interval == 0 else None
             else:
                 next_tick += self.step_length / self.realtime_factor
+                if next_tick <= time.monotonic():
+                    self.waiter.keep_serving()   # behind its schedule it never waits: parameters still answered
                 while (wait := next_tick - time.monotonic()) > 0:
                     self.waiter.spin_once(wait)
                 take_waiting(self.commands)

@@ -12,8 +12,10 @@ with fixed frame ``map``.
 
 As the other nodes, it starts an episode's frames on the bridge's (or the player's)
 EVENT_STARTED only, takes a states message only if it can follow the current episode and step
-(``StepGate``) and every field fits the scenario (``conversions.checked_states``), and
-otherwise rejects it whole and counts it on /diagnostics: a bad message changes no frame.
+(``StepGate``; as an onlooker it follows any later step of the episode, so one joining
+mid-episode or falling behind draws on) and every field fits the scenario
+(``conversions.checked_states``), and otherwise rejects it whole and counts it on
+/diagnostics: a bad message changes no frame.
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
+from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.ros.common import (
     COMMANDS_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -48,7 +51,6 @@ from exit_decision.ros.common import (
     run_node,
     take_waiting,
 )
-from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.ros.conversions import (
     MessageError,
     checked_states,
@@ -99,7 +101,9 @@ class Visualizer(Node):
         geometry = RoadGeometry.of(road)
         layout = RoadLayout.of(geometry, road)
         self.limits = StateLimits.of(config, geometry)
-        self.gate = StepGate(config.scenario.max_steps)
+        # an onlooker: any step later in the episode follows (one joining mid-episode, or behind
+        # and dropping, goes on drawing); only a step back, or one of another episode, is refused
+        self.gate = StepGate(config.scenario.max_steps, max_gap=config.scenario.max_steps + 1)
         self.frames = FrameBuilder(layout, config.scenario.step_length)
         self.scene = MarkerScene(layout)
         self.overrides: int | None = None
