@@ -189,14 +189,15 @@ def drop_table(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]
 
 
 def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path) -> Path | None:
-    """Every learned method's training return against the RL decisions it has taken (the unit
-    of the budget; methods' episodes differ in length), mean over its seeds on a common grid
-    of decisions, rolling mean over a tenth of it (plotted at each window's end); the rows with
-    our measures above, the as-published ones below (their returns are on another scale), a
-    method and its published row in one colour; the teacher's validation return as a line."""
-    fig, axes = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
+    """Every learned method's training return (under the matrix's reward, whatever it learns
+    from) against the RL decisions it has taken (the unit of the budget; methods' episodes
+    differ in length), mean over its seeds on a common grid of decisions, rolling mean over a
+    tenth of it (plotted at each window's end); the rows with our measures and the as-published
+    ones in a panel each (their returns are far apart), a method and its published row in one
+    colour; the teacher's validation return as a line."""
     colours = plt.get_cmap('tab10').colors
     bases = list(dict.fromkeys(method.removesuffix(PUBLISHED_SUFFIX) for method in learned))
+    panels: dict[bool, list[tuple[str, int, np.ndarray, np.ndarray]]] = {}
     teacher = []
     for method, run_names in learned.items():
         curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
@@ -206,23 +207,25 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
             continue
         grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves), 200)
         smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0), 20)
-        published = method.endswith(PUBLISHED_SUFFIX)
-        base = bases.index(method.removesuffix(PUBLISHED_SUFFIX))
-        axes[int(published)].plot(grid[len(grid) - len(smoothed):], smoothed, color=colours[base % len(colours)],
-                                  linestyle=('-', '--', ':')[base // len(colours) % 3],
-                                  label=f'{method} ({len(curves)} seeds)')
+        panels.setdefault(method.endswith(PUBLISHED_SUFFIX), []).append(
+            (f'{method} ({len(curves)} seeds)', bases.index(method.removesuffix(PUBLISHED_SUFFIX)),
+             grid[len(grid) - len(smoothed):], smoothed))
         validations = [training_dir / name / 'validation.csv' for name in run_names]
         teacher += [float(r['teacher_return']) for path in validations if path.is_file() for r in read_rows(path)]
-    if not any(ax.lines for ax in axes):
-        plt.close(fig)
+    if not panels:
         return None
-    if teacher:   # on the matrix's reward, which only the rows with our measures learn from
-        axes[0].axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
-    for ax, title in zip(axes, ('with our measures', 'as published (each learns from its paper\'s reward)')):
-        ax.set_title(title, fontsize=9)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 4 * len(panels)), sharex=True, squeeze=False)
+    for ax, published in zip(axes[:, 0], sorted(panels)):
+        for label, base, x, y in panels[published]:
+            ax.plot(x, y, color=colours[base % len(colours)], linestyle=('-', '--', ':')[base // len(colours) % 3],
+                    label=label)
+        if teacher:
+            ax.axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
+        ax.set_title('as published (learning from its paper\'s reward)' if published else 'with our measures',
+                     fontsize=9)
         ax.set_ylabel('episode return, training mode')
         ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
-    axes[-1].set_xlabel('RL decisions (after pre-training)')
+    axes[-1, 0].set_xlabel('RL decisions (after pre-training)')
     return save(fig, out)
 
 
