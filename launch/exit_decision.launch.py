@@ -15,7 +15,10 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from exit_decision.ros.dds_defaults import apply_dds_defaults
 from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, plan
+
+apply_dds_defaults()   # this process too (launch_ros may start a node in it), and every node it starts
 
 
 def start_nodes(context):

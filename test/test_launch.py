@@ -101,6 +101,7 @@ def test_every_node_of_the_table_is_a_console_script():
 def python(code: str, **env_changes) -> str:
     env = {key: value for key, value in os.environ.items() if key != 'ROS_AUTOMATIC_DISCOVERY_RANGE'}
     env.update(env_changes)
+    env = {key: value for key, value in env.items() if value is not None}   # None: unset
     result = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=120,
                             cwd=REPO, check=False)
     assert result.returncode == 0, result.stderr
@@ -132,6 +133,30 @@ def test_the_launcher_its_helper_node_and_its_nodes_keep_dds_on_loopback_by_defa
 def test_a_users_explicit_discovery_range_wins():
     # OFF: no discovery at all, so this test never reaches beyond the machine either
     assert python(LAUNCHER_CHILD, ROS_AUTOMATIC_DISCOVERY_RANGE='OFF') == 'OFF OFF'
+
+
+LAUNCH_PROCESS = f'''
+import importlib.util, os, sys, types
+for module, names in {{'launch': ['LaunchDescription'], 'launch.actions': ['DeclareLaunchArgument', 'EmitEvent',
+        'OpaqueFunction', 'RegisterEventHandler'], 'launch.event_handlers': ['OnProcessExit'],
+        'launch.events': ['Shutdown'], 'launch.substitutions': ['LaunchConfiguration'],
+        'launch_ros': [], 'launch_ros.actions': ['Node']}}.items():
+    stub = sys.modules[module] = types.ModuleType(module)
+    for name in names:
+        setattr(stub, name, type(name, (), {{}}))
+spec = importlib.util.spec_from_file_location('launch_file', {str(LAUNCH_FILE)!r})
+spec.loader.exec_module(importlib.util.module_from_spec(spec))
+print(os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'], 'rclpy' in sys.modules, os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'])
+'''
+
+
+def test_the_ros2_launch_process_keeps_dds_on_loopback_before_any_node_and_a_users_choice_wins():
+    """The launch file sets the defaults in the `ros2 launch` process itself (launch_ros may
+    start a node there; every node it starts inherits them), without importing rclpy."""
+    loopback, rclpy_loaded, profile = python(LAUNCH_PROCESS, FASTRTPS_DEFAULT_PROFILES_FILE=None).split(' ')
+    assert (loopback, rclpy_loaded) == ('LOCALHOST', 'False') and profile.endswith('config/fastdds.xml')
+    assert python(LAUNCH_PROCESS, ROS_AUTOMATIC_DISCOVERY_RANGE='OFF', FASTRTPS_DEFAULT_PROFILES_FILE='mine.xml'
+                  ) == 'OFF False mine.xml'
 
 
 def test_every_entry_point_takes_the_default_from_one_place():

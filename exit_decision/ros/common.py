@@ -36,10 +36,12 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-# DDS stays on this machine unless the user chose otherwise: the one place that sets it, before
-# rclpy starts, in the module every node (run_node), the launcher's and the benchmark's helper
-# node (ProbeNode) import; every process they start inherits it.
-os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+from exit_decision.ros.dds_defaults import apply_dds_defaults
+
+# DDS on loopback and our Fast DDS profile unless the user chose otherwise (dds_defaults), set
+# before rclpy starts, in the module every node (run_node), the launcher's and the benchmark's
+# helper node (ProbeNode) import; every process they start inherits it.
+apply_dds_defaults()
 
 import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -55,18 +57,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project
-from exit_decision.errors import PolicyError
-
-# Fast DDS's discovery timing (config/fastdds.xml says why), before any participant starts and
-# inherited like the loopback default; a user's own profile file wins.
-if not {'FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE'} & set(os.environ):
-    try:
-        _profile = default_config_dir() / 'fastdds.xml'
-    except ConfigError:
-        _profile = None   # not installed: the node says so when it loads its config
-    if _profile is not None and _profile.is_file():
-        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(_profile)
+from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project  # noqa: E402
+from exit_decision.errors import PolicyError  # noqa: E402
 
 STATES_TOPIC = '/exit_decision/vehicle_states'
 GRAPH_TOPIC = '/exit_decision/traffic_graph'
