@@ -239,26 +239,32 @@ def increasing_decisions(curve: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], mode: str,
                    out: Path) -> Path | None:
-    """Return under the training mode per method across the variants, with 95% intervals."""
+    """Return under the training mode per method across the variants, with 95% intervals: the
+    reference drivers and the rows with our measures in one panel, the as-published rows (two
+    orders of magnitude below) in another; 20 colours."""
     variants = list(per_variant)
     methods = sorted({m for runs in per_variant.values() for m in runs})
-    if not methods:
+    groups = [group for group in ([m for m in methods if not m.endswith(PUBLISHED_SUFFIX)],
+                                  [m for m in methods if m.endswith(PUBLISHED_SUFFIX)]) if group]
+    if not groups:
         return None
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    width = 0.8 / len(methods)
-    for i, method in enumerate(methods):
-        xs, means, errors = [], [], []
-        for j, variant in enumerate(variants):
-            episodes = per_variant[variant].get(method, {}).get(mode)
-            if episodes:
-                mean, low, _ = paired_interval([e['reward'] for e in episodes])
-                xs.append(j + (i - len(methods) / 2 + 0.5) * width)
-                means.append(mean)
-                errors.append(mean - low if np.isfinite(low) else 0.0)
-        ax.bar(xs, means, width, yerr=errors, label=method, capsize=2)
-    ax.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
-    ax.set_ylabel(f'episode return under {mode} (95% interval)')
-    ax.legend(fontsize=7, ncol=3)
+    colours = plt.get_cmap('tab20').colors
+    fig, axes = plt.subplots(len(groups), 1, figsize=(11, 4 * len(groups)), squeeze=False)
+    for ax, group in zip(axes[:, 0], groups):
+        width = 0.8 / len(group)
+        for i, method in enumerate(group):
+            xs, means, errors = [], [], []
+            for j, variant in enumerate(variants):
+                episodes = per_variant[variant].get(method, {}).get(mode)
+                if episodes:
+                    mean, low, _ = paired_interval([e['reward'] for e in episodes])
+                    xs.append(j + (i - len(group) / 2 + 0.5) * width)
+                    means.append(mean)
+                    errors.append(mean - low if np.isfinite(low) else 0.0)
+            ax.bar(xs, means, width, yerr=errors, label=method, capsize=2, color=colours[i % len(colours)])
+        ax.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
+        ax.set_ylabel(f'episode return under {mode}\n(95% interval)')
+        ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
     return save(fig, out)
 
 
