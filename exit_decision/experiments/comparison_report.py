@@ -188,6 +188,21 @@ def drop_table(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]
     return '\n'.join(lines)
 
 
+def is_published(method: str) -> bool:
+    """A baseline's as-published row: its returns are far below every other row's, so the
+    figures give those rows a panel of their own."""
+    return method.endswith(PUBLISHED_SUFFIX)
+
+
+def stacked_panels(count: int, width: float, sharex: bool = False):
+    """A figure of ``count`` panels, 4 inches high each, one above the other (an array of axes)."""
+    fig, axes = plt.subplots(count, 1, figsize=(width, 4 * count), sharex=sharex, squeeze=False)
+    return fig, axes[:, 0]
+
+
+CURVE_GRID = 200   # points of the common grid of decisions a method's seeds are averaged on
+
+
 def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path) -> Path | None:
     """Every learned method's training return (under the matrix's reward, whatever it learns
     from) against the RL decisions it has taken (the unit of the budget; methods' episodes
@@ -205,17 +220,19 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
         curves = [increasing_decisions(c) for c in curves if len(c.get('reward', ())) > 1]
         if not curves:
             continue
-        grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves), 200)
-        smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0), 20)
-        panels.setdefault(method.endswith(PUBLISHED_SUFFIX), []).append(
+        grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves),
+                           CURVE_GRID)
+        smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0),
+                           CURVE_GRID // 10)
+        panels.setdefault(is_published(method), []).append(
             (f'{method} ({len(curves)} seeds)', bases.index(method.removesuffix(PUBLISHED_SUFFIX)),
              grid[len(grid) - len(smoothed):], smoothed))
         validations = [training_dir / name / 'validation.csv' for name in run_names]
         teacher += [float(r['teacher_return']) for path in validations if path.is_file() for r in read_rows(path)]
     if not panels:
         return None
-    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 4 * len(panels)), sharex=True, squeeze=False)
-    for ax, published in zip(axes[:, 0], sorted(panels)):
+    fig, axes = stacked_panels(len(panels), 10, sharex=True)
+    for ax, published in zip(axes, sorted(panels)):
         for label, base, x, y in panels[published]:
             ax.plot(x, y, color=colours[base % len(colours)], linestyle=('-', '--', ':')[base // len(colours) % 3],
                     label=label)
@@ -225,7 +242,7 @@ def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path
                      fontsize=9)
         ax.set_ylabel('episode return, training mode')
         ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
-    axes[-1, 0].set_xlabel('RL decisions (after pre-training)')
+    axes[-1].set_xlabel('RL decisions (after pre-training)')
     return save(fig, out)
 
 
@@ -244,13 +261,13 @@ def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, flo
     orders of magnitude below) in another; 20 colours."""
     variants = list(per_variant)
     methods = sorted({m for runs in per_variant.values() for m in runs})
-    groups = [group for group in ([m for m in methods if not m.endswith(PUBLISHED_SUFFIX)],
-                                  [m for m in methods if m.endswith(PUBLISHED_SUFFIX)]) if group]
+    groups = [group for group in ([m for m in methods if not is_published(m)], [m for m in methods if is_published(m)])
+              if group]
     if not groups:
         return None
     colours = plt.get_cmap('tab20').colors
-    fig, axes = plt.subplots(len(groups), 1, figsize=(11, 4 * len(groups)), squeeze=False)
-    for ax, group in zip(axes[:, 0], groups):
+    fig, axes = stacked_panels(len(groups), 11)
+    for ax, group in zip(axes, groups):
         width = 0.8 / len(group)
         for i, method in enumerate(group):
             xs, means, errors = [], [], []
@@ -272,8 +289,7 @@ def wall_time_lines(training_dir: Path, learned: dict[str, list[str]]) -> list[s
     """Per method: training wall time and the environment it used (RL episodes, simulation
     steps and decisions of the RL phase), means over its seeds."""
     header = ('| method | training wall time per 100 RL episodes, validation included [s] | total per run [s] | '
-              'RL episodes | '
-              'simulation steps | decisions |')
+              'RL episodes | simulation steps | decisions |')
     lines = [header, '|---' * 6 + '|']
     for method, run_names in learned.items():
         timings = [json.loads((training_dir / name / 'timing.json').read_text()) for name in run_names
@@ -320,10 +336,11 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
              f'{" or ".join(map(str, seeds))} seed(s) each, all with the same budget of {budget_words(budget)}; '
              f'a method\'s episodes are averaged over its training seeds per test seed. A row without a suffix '
              f'has our measures (shield, decision interval, lane planner, demonstrations of the rule-based driver '
-             f'and pre-training on them). A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it learns from its paper\'s reward '
-             f'(config/reward.yaml) with its paper\'s exploration and no demonstrations, and drives, in training '
-             f'and here, with only the lanes that exist masked and no lane planner; only the decision interval '
-             f'stays ours. Every row is scored under the modes of the reward function matrix.'),
+             f'and pre-training on them). A row <method>{PUBLISHED_SUFFIX} is that baseline as published: it '
+             f'learns from its paper\'s reward (config/reward.yaml) with its paper\'s exploration and no '
+             f'demonstrations, and drives, in training and here, with only the lanes that exist masked and no '
+             f'lane planner; only the decision interval stays ours. Every row is scored under the modes of the '
+             f'reward function matrix.'),
             '**Budget** (merged over config/training.yaml for every method alike):\n\n```json\n'
             + json.dumps(budget or {}, indent=2) + '\n```']
     if left_out:

@@ -286,7 +286,6 @@ class Waiter:
             self.executor_passed = now
             self.executor.spin_once(timeout_sec=0.0)
 
-
     def keep_serving(self) -> None:
         """For a loop that may not wait for a while (a realtime bridge behind its schedule): a
         pass without waiting if the executor has had none for ``EXECUTOR_PERIOD``, so services
