@@ -190,9 +190,8 @@ def test_sigterm_stops_a_decision_node_on_sim_time_with_no_clock(tmp_path):
     try:
         client = probe.node.create_client(GetParameters, '/decision_node/get_parameters')
         assert probe.spin_until(client.service_is_ready, 60), 'decision_node did not come up'
-        future = client.call_async(GetParameters.Request(names=['use_sim_time']))
-        probe.executor.spin_until_future_complete(future, timeout_sec=60)   # answered once it spins
-        assert future.result() is not None and future.result().values[0].bool_value
+        response = probe.call(client, GetParameters.Request(names=['use_sim_time']), timeout=60)   # once it spins
+        assert response is not None and response.values[0].bool_value
         process.send_signal(signal.SIGTERM)
         process.wait(30)
     finally:

@@ -140,9 +140,9 @@ def get_parameters(test: ProbeNode, node_name: str, names: list[str]) -> list:
     """What `ros2 param get` shows: the node's get_parameters service."""
     client = test.node.create_client(GetParameters, f'/{node_name}/get_parameters')
     assert test.spin_until(client.service_is_ready, 30)
-    future = client.call_async(GetParameters.Request(names=names))
-    test.executor.spin_until_future_complete(future, timeout_sec=30)
-    return [parameter_value_to_python(v) for v in future.result().values]
+    response = test.call(client, GetParameters.Request(names=names), timeout=60)
+    assert response is not None, f'{node_name} did not answer get_parameters within 60 s'
+    return [parameter_value_to_python(v) for v in response.values]
 
 
 def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(setup):
@@ -451,9 +451,11 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
     test.node.create_subscription(EpisodeEvent, EPISODE_TOPIC,
                                   lambda m: ended.append(m) if m.event == EpisodeEvent.EVENT_ENDED else None,
                                   EVENT_QOS)
-    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, lambda m: decided.update(
-        {m.step: [(c.vehicle_id, c.lane_change, c.acceleration) for c in m.commands]}) if m.algorithm != 'fuzz' else None,
-        COMMANDS_QOS)   # depth 1000: it also gets its own flood
+
+    def on_commands(msg: CavCommandArray) -> None:
+        if msg.algorithm != 'fuzz':
+            decided[msg.step] = [(c.vehicle_id, c.lane_change, c.acceleration) for c in msg.commands]
+    test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, COMMANDS_QOS)   # 1000: its own flood too
     states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
     nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / f'graph_{name}.log'),

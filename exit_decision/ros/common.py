@@ -318,23 +318,27 @@ class ProbeNode:
             self.spin_once(0.05)
         return condition()
 
-    def set_parameter(self, client, name: str, value, timeout: float, attempt: float = 10.0):
-        """Call a node's set_parameters service (what `ros2 param set` calls) through ``client``;
-        the SetParametersResult, or None when no answer came within ``timeout`` seconds.
-
-        A request unanswered after ``attempt`` seconds is sent again (setting a value twice is
-        harmless): right after discovery the server's response can be lost before the
-        client's response reader is matched (Fast DDS: "failed to send response (timeout)",
-        seen on a fresh clone)."""
-        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+    def call(self, client, request, timeout: float, attempt: float = 10.0):
+        """Call a service through ``client``; its response, or None when no answer came within
+        ``timeout`` seconds. A request unanswered after ``attempt`` seconds is sent again (the
+        calls made here, getting and setting parameters, are harmless to repeat): right after
+        discovery the server's response can be lost before the client's response reader is
+        matched (Fast DDS: "failed to send response (timeout)", seen on fresh clones)."""
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
             future = client.call_async(request)
             self.executor.spin_until_future_complete(future, timeout_sec=min(attempt, left))
             if future.done() and future.result():
-                return future.result().results[0]
+                return future.result()
             client.remove_pending_request(future)
         return None
+
+    def set_parameter(self, client, name: str, value, timeout: float, attempt: float = 10.0):
+        """Call a node's set_parameters service (what `ros2 param set` calls) through ``client``
+        (``call``); the SetParametersResult, or None when no answer came within ``timeout`` seconds."""
+        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        response = self.call(client, request, timeout, attempt)
+        return response.results[0] if response is not None else None
 
     def close(self) -> None:
         self.node.destroy_node()
