@@ -20,6 +20,10 @@ class ActionGrid:
         #: lane change and acceleration of every action index
         self.lane_change_of = np.repeat(np.array(self.lane_changes), len(self.accelerations))
         self.acceleration_of = np.tile(self.accelerations, len(self.lane_changes))
+        #: lane change -> (size,) bool, the actions that make it (read-only: shared by every mask)
+        self.rows_of = {change: self.lane_change_of == change for change in self.lane_changes}
+        for rows in self.rows_of.values():
+            rows.flags.writeable = False
 
     def index(self, lane_change: int, acceleration: float) -> int:
         """The action closest to the given lane change and acceleration."""

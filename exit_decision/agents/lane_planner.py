@@ -44,7 +44,10 @@ class LanePlanner:
         if not vehicle.on_highway or not self.on_route(vehicle):
             return mask
         lanes = self.geometry.route_lanes(vehicle.position)
-        kept = mask & np.isin(vehicle.lane_index + self.grid.lane_change_of, lanes)
+        kept = mask.copy()
+        for change, rows in self.grid.rows_of.items():
+            if vehicle.lane_index + change not in lanes:
+                kept[rows] = False
         return kept if kept.any() else mask
 
     def choose(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> int | None:

@@ -51,6 +51,11 @@ class Shield:
         self.geometry = geometry
         self.horizon = decision_time            # [s] an action is held this long
         self.fallback = grid.index(0, grid.accelerations.min())
+        self.not_hard_braking = grid.accelerations > config.hard_braking   # per acceleration of the grid
+        a, t = grid.accelerations, decision_time
+        #: what ``ego_motion`` needs of the grid: a t, 2 max(-a, tiny) (a stop within the interval
+        #: takes v^2 / that), a t^2 / 2 (each as the formula computes it, so the masks are exact)
+        self.grid_motion = (a * t, 2 * np.maximum(-a, 1e-9), 0.5 * a * t * t)
 
     @classmethod
     def of(cls, config: ProjectConfig, grid: ActionGrid, geometry: RoadGeometry) -> Shield:
@@ -78,30 +83,38 @@ class Shield:
                                                vehicle.length, exclude=vehicle.vehicle_id))
         return min(options, key=lambda n: n.leader_gap)
 
-    def stop_capable(self, vehicle: VehicleState, gap: float, leader_speed: float) -> np.ndarray:
+    def ego_motion(self, speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per acceleration of the grid, for a CAV at ``speed`` holding it one decision
+        interval: the distance it travels and the braking distance it then needs at its
+        maximum braking. (The part of ``stop_capable`` that does not depend on the lane: one
+        mask computes it once for its three lanes.)"""
+        t, (a_t, two_decelerations, half_a_t2) = self.horizon, self.grid_motion
+        v = speed
+        travel = np.where(v + a_t < 0, v * v / two_decelerations, v * t + half_a_t2)
+        speed_after = np.maximum(v + a_t, 0.0)
+        return travel, speed_after ** 2 / (2 * self.config.ego_max_braking)
+
+    def stop_capable(self, vehicle: VehicleState, gap: float, leader_speed: float,
+                     motion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Per acceleration of the grid: can the CAV still stop behind a leader braking at its
-        maximum, after holding that acceleration for one decision interval?"""
+        maximum, after holding that acceleration for one decision interval? ``motion``: its
+        ``ego_motion``, if already computed."""
         c, t = self.config, self.horizon
-        a = self.grid.accelerations
-        v = vehicle.speed
-        stops_within = v + a * t < 0
-        with np.errstate(divide='ignore', invalid='ignore'):
-            travel = np.where(stops_within, v * v / (2 * np.maximum(-a, 1e-9)), v * t + 0.5 * a * t * t)
-        speed_after = np.maximum(v + a * t, 0.0)
+        travel, braking_distance = motion if motion is not None else self.ego_motion(vehicle.speed)
         b = c.leader_max_braking
         leader_travel = leader_speed * leader_speed / (2 * b) if leader_speed < b * t else \
             leader_speed * t - 0.5 * b * t * t
         leader_after = max(leader_speed - b * t, 0.0)
         gap_after = gap + leader_travel - travel
-        needed = speed_after ** 2 / (2 * c.ego_max_braking) - leader_after ** 2 / (2 * b) + c.stop_margin
+        needed = braking_distance - leader_after ** 2 / (2 * b) + c.stop_margin
         return gap_after >= needed
 
     def mask(self, vehicle: VehicleState, snapshot: TrafficSnapshot) -> np.ndarray:
         """(A,) bool: the actions this CAV may take now."""
         c, grid = self.config, self.grid
         allowed = np.zeros(grid.size, dtype=bool)
+        motion = self.ego_motion(vehicle.speed) if c.stop_capable else None
         for lane_change in grid.lane_changes:
-            rows = grid.lane_change_of == lane_change
             if not self.geometry.lane_change_exists(vehicle, lane_change):
                 continue
             lane = vehicle.lane_index + lane_change
@@ -114,15 +127,15 @@ class Shield:
                 if (around.leader_gap < c.gap_front
                         or around.follower_gap < c.gap_back + c.gap_back_time * closing):
                     continue
-                ok &= grid.accelerations > c.hard_braking   # a gap that needs hard braking is too small
+                ok &= self.not_hard_braking   # a gap that needs hard braking is too small
             if c.stop_capable:
                 ahead = self.leader(vehicle, lane, snapshot)
                 if ahead.leader is not None:
-                    ok &= self.stop_capable(vehicle, ahead.leader_gap, ahead.leader.speed)
+                    ok &= self.stop_capable(vehicle, ahead.leader_gap, ahead.leader.speed, motion)
             if c.human_follower_braking and around.follower is not None \
                     and not around.follower.controlled and around.follower_gap < c.human_follower_distance:
-                ok &= grid.accelerations > c.hard_braking
-            allowed[rows] = ok
+                ok &= self.not_hard_braking
+            allowed[grid.rows_of[lane_change]] = ok
         if not allowed.any():
             allowed[self.fallback] = True
         return allowed
