@@ -122,7 +122,7 @@ def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
     return '\n'.join(lines)
 
 
-def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
+def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_priority: int = 0) -> str:
     """The default stack (``stack_nodes.plan``: recorder and visualizer included), each node its
     own process, synchronous mode, episodes until stopped.
 
@@ -133,7 +133,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     real-time factor and, for each decision step, the time from receiving the states to
     receiving the commands that answer them; and each process's CPU time per step over those
     steps (from /proc: where the cores' time goes, which wall-clock figures on a shared
-    machine hide)."""
+    machine hide). ``thread_priority``: the nodes on the decision path run real-time at it
+    (0: normal scheduling)."""
     import tempfile
 
     import numpy as np
@@ -141,7 +142,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
-    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode,
+                                          set_realtime_priority)
     from exit_decision.ros.launcher import StackLauncher
     from exit_decision.ros.stack_nodes import BRIDGE, plan
     from exit_decision.step_gaps import episode_and_step
@@ -176,7 +178,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     cpu_at_first_command: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
-                        'policy_dir': policy_dir}, extra_listeners=1)
+                        'policy_dir': policy_dir, 'thread_priority': thread_priority}, extra_listeners=1)
         names = [name for name, _ in started]
         launcher = StackLauncher(dict(started), Path(tmp) / 'logs')
         try:
@@ -190,6 +192,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
                 probe.spin_once(0.1)
             decision_start = time.time()
             launcher.start('decision_node')
+            if thread_priority:   # the observer too, its children started: its receive stamps must not lag theirs
+                set_realtime_priority(thread_priority)
             pending = None
             deadline = time.monotonic() + 600
             while counted['states'] < steps + 1 and time.monotonic() < deadline:
@@ -222,8 +226,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int) -> str:
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     cores = len(os.sched_getaffinity(0))
     return '\n'.join([
-        (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, {measured} steps '
-         f'({len(latency)} decisions) from the first command'),
+        (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, '
+         + (f'decision path at real-time priority {thread_priority}, ' if thread_priority else 'normal scheduling, ')
+         + f'{measured} steps ({len(latency)} decisions) from the first command'),
         (f'  decision node start: parameters answered after {answer}, '
          f'the bridge\'s first step after {min(states_at.values()) - decision_start:.2f} s, '
          f'first command after {first_command - decision_start:.2f} s'),

@@ -23,6 +23,17 @@ def _common(parser: argparse.ArgumentParser) -> None:
                              'config (repeatable)')
 
 
+def _thread_priority(parser: argparse.ArgumentParser) -> None:
+    def priority(text: str) -> int:
+        if not text.isdigit() or not 0 <= int(text) <= 99:
+            raise argparse.ArgumentTypeError(f'{text!r} is not allowed; allowed: an integer in 0..99')
+        return int(text)
+    parser.add_argument('--thread-priority', type=priority, default=0, metavar='0-99',
+                        help='real-time (SCHED_FIFO) priority of the nodes on the decision path (bridge, graph '
+                             'builder, decision node); 0 (default): normal scheduling. Needs CAP_SYS_NICE or an '
+                             'rtprio limit (ulimit -r)')
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run episodes of the scenario and print the SPEC section 6 metrics."""
     import numpy as np
@@ -205,7 +216,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
                     bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
                     switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
-                    visualizer=not args.no_visualizer)
+                    visualizer=not args.no_visualizer, thread_priority=args.thread_priority)
     if run.mode_switch:
         print(run.mode_switch)
     if run.episodes:
@@ -322,7 +333,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(bench_sweep(args.config_dir, args.episodes, args.seed))
     if args.what in ('ros', 'all'):
         from exit_decision.benchmarks import bench_ros
-        print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed))
+        print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed,
+                        args.thread_priority))
     return 0
 
 
@@ -424,6 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument('--policy-dir', type=Path, default=None, help='default: the shipped policies/')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
+    _thread_priority(stack)
     stack.set_defaults(func=cmd_stack)
 
     replay = commands.add_parser('replay', help='re-run the policy on a bag and compare with its commands')
@@ -556,6 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument('--policy-dir', type=Path, default=None, help='ros: default the shipped policies/')
     bench.add_argument('--episodes', type=int, default=2, help='episodes per measurement (sweep: seeds per cell)')
     bench.add_argument('--seed', type=int, default=0)
+    _thread_priority(bench)
     bench.set_defaults(func=cmd_bench)
     return parser
 

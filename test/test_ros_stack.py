@@ -508,6 +508,7 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     ('sumo_bridge', {'timing': 'fast'}, "parameter timing: 'fast' is not allowed; allowed: synchronous | realtime"),
     ('sumo_bridge', {'command_timeout': 0.0}, 'parameter command_timeout: 0.0 is not allowed; allowed: a number in'),
     ('decision_node', {'mode': 3}, 'parameter mode: 3 is not allowed; allowed: AGGI | AGGP | CONI | CONP'),
+    ('graph_builder', {'thread_priority': 150}, 'parameter thread_priority: 150 is not allowed; allowed: an integer in 0..99'),
     ('player', {}, 'parameter bag_path: not given'),
     ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
     ('player', {'bag_path': 'CORRUPT'}, 'not a readable bag'),
@@ -530,13 +531,62 @@ def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, no
     assert expected in text and len(text.strip().splitlines()) == 1, text
 
 
+def may_run_realtime(priority: int) -> bool:
+    """Can a process started from here take SCHED_FIFO at ``priority``?"""
+    import resource
+    limit = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+    return os.geteuid() == 0 or limit == resource.RLIM_INFINITY or limit >= priority
+
+
+def without_realtime_rights():
+    """Lower the rtprio limit of a child to 0 (its preexec_fn); a root child also loses
+    CAP_SYS_NICE through ``setpriv`` (the command prefix returned)."""
+    import resource
+    import shutil
+    if os.geteuid() == 0 and not shutil.which('setpriv'):
+        pytest.skip('root without setpriv: cannot start a process without real-time rights')
+    prefix = ['setpriv', '--bounding-set', '-sys_nice', '--inh-caps', '-sys_nice'] if os.geteuid() == 0 else []
+    return prefix, lambda: resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+
+
+def test_a_thread_priority_without_the_right_to_it_gives_one_line_and_exit_code_1(setup, tmp_path):
+    import subprocess
+    from exit_decision.ros.launcher import executable, ros_args
+    prefix, drop_rights = without_realtime_rights()
+    log = tmp_path / 'node.log'
+    process = subprocess.Popen(prefix + executable('graph_builder') + ros_args(
+        {'config_dir': str(setup['config_dir']), 'thread_priority': 10}), stdout=open(log, 'w'),
+        stderr=subprocess.STDOUT, preexec_fn=drop_rights)
+    assert process.wait(60) == 1
+    text = log.read_text()
+    assert 'parameter thread_priority: 10 needs real-time scheduling rights' in text, text
+    assert len(text.strip().splitlines()) == 1, text
+
+
+def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup, tmp_path):
+    """Those the middleware starts once its policies are loaded (its subscriptions) too."""
+    if not may_run_realtime(10):
+        pytest.skip('this user may not use real-time scheduling')
+    process = start_node('decision_node', {'config_dir': str(setup['config_dir']), 'policy_dir': str(setup['policies']),
+                                           'thread_priority': 10}, tmp_path / 'node.log')
+    test = ProbeNode('priority_test')
+    try:
+        assert test.spin_until(lambda: test.node.count_publishers(COMMANDS_TOPIC) > 0, 60), 'policies loaded'
+        policies = {int(tid): os.sched_getscheduler(int(tid)) for tid in os.listdir(f'/proc/{process.pid}/task')}
+        assert len(policies) > 3 and set(policies.values()) == {os.SCHED_FIFO}, policies
+        assert os.sched_getparam(process.pid).sched_priority == 10
+    finally:
+        test.close()
+        stop(process)
+
+
 @pytest.mark.parametrize('node, parameters, fixed, live', [
     ('sumo_bridge', {'startup_timeout': 600.0, 'wait_for_subscribers': 5},
      {'seed': 7, 'startup_timeout': 1.0, 'wait_for_subscribers': 0, 'timing': 'realtime'},
      {'command_timeout': 2.5, 'realtime_factor': 4.0, 'episodes': 3}),
     ('visualizer', {}, {'config_dir': '/tmp'}, {'max_rate': 5.0}),
     ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}),
-    ('graph_builder', {}, {'config_dir': '/tmp'}, {}),
+    ('graph_builder', {}, {'config_dir': '/tmp', 'thread_priority': 5}, {}),
     ('decision_node', {'policy_dir': 'POLICIES'},
      {'policy_dir': '/tmp', 'modes': ['CONP'], 'algorithms': ['gqn'], 'config_dir': '/tmp'}, {'mode': 'CONP'}),
 ])

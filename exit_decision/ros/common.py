@@ -142,6 +142,45 @@ def check_choice(name: str, value, choices) -> None:
         raise ParameterError(f'parameter {name}: {value!r} is not allowed; allowed: {" | ".join(choices)}')
 
 
+def declare_thread_priority(node: Node) -> int:
+    """Declare the read-only ``thread_priority`` of a node on the decision path (bridge, graph
+    builder, decision node) and apply it to every thread of the process: its own, the
+    middleware's, and those it starts later (they inherit it). 0, the default, leaves the
+    OS's normal scheduling. 1-99 runs them with real-time SCHED_FIFO at that priority, as
+    ros2_control's controller manager runs its loop: on a machine whose cores the onlookers
+    (recorder, visualizer) share, a wake-up on the decision path then never waits behind
+    another process (docs/design.md, "ROS 2 -> Speed"). Needs the right to: CAP_SYS_NICE, or an
+    rtprio limit of at least that priority; without it the node does not start, and says so."""
+    priority = declare(node, 'thread_priority', 0, describe(
+        'real-time (SCHED_FIFO) priority of every thread of this node, 1-99, for the nodes on the decision '
+        'path; 0: the normal scheduling. Needs CAP_SYS_NICE or an rtprio limit >= the priority',
+        read_only=True, integer_range=(0, 99)))
+    if priority:
+        set_realtime_priority(priority)
+    return priority
+
+
+def set_realtime_priority(priority: int) -> None:
+    """Every thread of this process SCHED_FIFO at ``priority``; ParameterError (naming
+    ``thread_priority``) when the process may not."""
+    if not hasattr(os, 'SCHED_FIFO'):
+        raise ParameterError(f'parameter thread_priority: {priority} needs Linux real-time scheduling; allowed here: 0')
+    try:
+        for thread in os.listdir('/proc/self/task'):
+            try:
+                os.sched_setscheduler(int(thread), os.SCHED_FIFO, os.sched_param(priority))
+            except ProcessLookupError:   # it ended meanwhile
+                pass
+    except PermissionError:
+        import resource
+        limit = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+        raise ParameterError(
+            f'parameter thread_priority: {priority} needs real-time scheduling rights, which this process lacks '
+            f'(its rtprio limit is {"unlimited" if limit == resource.RLIM_INFINITY else limit}, no CAP_SYS_NICE); '
+            f'allowed: 0, or grant them (an rtprio limit >= {priority} in /etc/security/limits.conf, or '
+            f'CAP_SYS_NICE)') from None
+
+
 def declare_config(node: Node) -> ProjectConfig:
     """Declare the read-only ``config_dir`` parameter and load the project config from it."""
     value = declare(node, 'config_dir', '', describe(

@@ -49,7 +49,7 @@ from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
-                                      describe, run_node, take_waiting)
+                                      declare_thread_priority, describe, run_node, take_waiting)
 from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
@@ -74,6 +74,7 @@ class DecisionNode(Node):
     def __init__(self):
         super().__init__('decision_node')
         config = declare_config(self)
+        declare_thread_priority(self)
         def p(name, default, descriptor):
             return declare(self, name, default, descriptor)
         policy_dir = Path(p('policy_dir', '', describe(

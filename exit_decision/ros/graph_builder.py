@@ -18,7 +18,7 @@ from rclpy.serialization import deserialize_message
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, run_node, take_waiting)
+                                      Diagnostics, declare_config, declare_thread_priority, run_node, take_waiting)
 from exit_decision.ros.conversions import checked_states, graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -29,6 +29,7 @@ class GraphBuilderNode(Node):
     def __init__(self):
         super().__init__('graph_builder')
         config = declare_config(self)
+        declare_thread_priority(self)
         road = config.scenario.road
         geometry = RoadGeometry.of(road)
         self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)

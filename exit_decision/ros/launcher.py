@@ -95,17 +95,20 @@ class StackLauncher:
 def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: Path, log_dir: Path, modes=(),
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
-              timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False) -> StackRun:
+              timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False,
+              thread_priority: int = 0) -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
     of the first episode (through the parameter service); ``modes``: the modes whose policies
     the decision node loads (empty: every mode); ``visualizer``: also publish the
-    scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock."""
+    scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock;
+    ``thread_priority``: real-time priority of the nodes on the decision path (0: normal)."""
     if bag_path.exists():
         raise FileExistsError(f'{bag_path}: the bag directory exists already')
     # this launcher's helper node listens to the states too: the bridge waits for it as well
     started = plan({'mode': mode, 'modes': list(modes), 'algorithm': algorithm, 'episodes': episodes, 'seed': seed,
                     'timing': timing, 'bag_path': bag_path, 'visualizer': visualizer, 'use_sim_time': use_sim_time,
-                    'config_dir': config_dir, 'policy_dir': policy_dir}, extra_listeners=1)
+                    'config_dir': config_dir, 'policy_dir': policy_dir, 'thread_priority': thread_priority},
+                   extra_listeners=1)
     parameters = dict(started)
     for name, values in (extra or {}).items():
         parameters[name].update(values)

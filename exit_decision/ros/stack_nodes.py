@@ -42,17 +42,21 @@ ARGUMENTS: dict[str, Argument] = {
     'bag_path': Argument('bags/exit_decision', 'bag directory (must not exist)'),
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
+    'thread_priority': Argument('0', 'real-time (SCHED_FIFO) priority 1-99 of the nodes on the decision path (bridge, '
+                                     'graph builder, decision node); 0: normal scheduling. Needs CAP_SYS_NICE or an '
+                                     'rtprio limit', int),
     'config_dir': Argument('', 'directory with the YAML config; empty: the installed share/exit_decision/config'),
     'policy_dir': Argument('', 'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies'),
 }
 
 NODES: tuple[StackNode, ...] = (
     StackNode('recorder', ('bag_path', 'config_dir', 'use_sim_time'), listens_to_states=True),
-    StackNode('graph_builder', ('config_dir', 'use_sim_time'), listens_to_states=True),
-    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time'),
-              listens_to_states=True),
+    StackNode('graph_builder', ('config_dir', 'use_sim_time', 'thread_priority'), listens_to_states=True),
+    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
+                                'thread_priority'), listens_to_states=True),
     StackNode('visualizer', ('config_dir', 'use_sim_time'), listens_to_states=True, enabled_by='visualizer'),
-    StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time'), listens_to_states=False),
+    StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time', 'thread_priority'),
+              listens_to_states=False),
 )
 
 _BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
