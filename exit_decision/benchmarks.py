@@ -133,8 +133,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     real-time factor and, for each decision step, the time from receiving the states to
     receiving the commands that answer them; and each process's CPU time per step over those
     steps (from /proc: where the cores' time goes, which wall-clock figures on a shared
-    machine hide). ``thread_priority``: the nodes on the decision path run real-time at it
-    (0: normal scheduling)."""
+    machine hide) and its resident memory at the first command and after the steps.
+    ``thread_priority``: the nodes on the decision path run real-time at it (0: normal
+    scheduling)."""
     import tempfile
 
     import numpy as np
@@ -176,6 +177,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
     answered = {'at': 0.0}
     cpu_at_first_command: dict[str, float] = {}
+    memory_at_first_command: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
                         'policy_dir': policy_dir, 'thread_priority': thread_priority}, extra_listeners=1)
@@ -204,9 +206,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
                     answered['at'] = time.time()
                 if commands_at and not cpu_at_first_command:
                     cpu_at_first_command = process_cpu_seconds(launcher)
+                    memory_at_first_command = process_memory_mb(launcher)
                 probe.spin_once(0.01)
             cpu_used = {name: seconds - cpu_at_first_command.get(name, 0.0)
                         for name, seconds in process_cpu_seconds(launcher).items()}
+            memory_at_end = process_memory_mb(launcher)
         finally:
             launcher.stop()
             probe.close()
@@ -239,7 +243,23 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
         f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {cores * 1000 * elapsed / measured:.2f} '
-        f'that {cores} cores have per step at this rate)'])
+        f'that {cores} cores have per step at this rate)',
+        '  resident memory [MB] at the first command -> after the steps: ' + ', '.join(
+            f'{name} {memory_at_first_command[name]:.0f} -> {memory_at_end[name]:.0f}'
+            for name in memory_at_end if name in memory_at_first_command)])
+
+
+def process_memory_mb(launcher) -> dict[str, float]:
+    """Resident memory (VmRSS) of each running process of the launcher, from /proc: a long
+    ``bench ros`` shows whether a node's memory grows with the steps (the recorder's must not)."""
+    used = {}
+    for name, process in launcher.processes.items():
+        try:
+            status = Path(f'/proc/{process.pid}/status').read_text()
+        except OSError:   # it has ended
+            continue
+        used[name] = next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
+    return used
 
 
 def process_cpu_seconds(launcher) -> dict[str, float]:

@@ -752,3 +752,14 @@ def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setu
         for process in (player, decision):
             if process is not None:
                 stop(process)
+
+
+def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
+    """The benchmark command is what the speed targets are measured with: it runs and says
+    what it measured (a short run; its figures are not judged here)."""
+    from exit_decision.benchmarks import bench_ros
+    text = bench_ros('', '', 100, 0)
+    assert 'normal scheduling, 100 steps' in text, text
+    for figure in ('real-time factor', 'states -> commands latency: median', 'CPU per step [ms]: sumo_bridge',
+                   'resident memory [MB] at the first command -> after the steps: recorder'):
+        assert figure in text, (figure, text)
