@@ -52,7 +52,7 @@ def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) ->
     temporary.replace(path)
 
 
-@torch.no_grad()
+@torch.inference_mode()   # no autograd bookkeeping at all (the values leave as numpy): 0.29 -> 0.21 ms a call
 def q_values(network: GraphQNetwork, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
     """(N, A) Q values of every row of one graph in one forward pass (rows that are not
     CAVs are computed but meaningless); ``weights``: the mode's six weights, for a
