@@ -134,8 +134,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     receiving the commands that answer them; and each process's CPU time per step over those
     steps (from /proc: where the cores' time goes, which wall-clock figures on a shared
     machine hide) and its resident memory at the first command and after the steps.
-    ``thread_priority``: the nodes on the decision path run real-time at it (0: normal
-    scheduling)."""
+    ``thread_priority``: the nodes on the decision path run real-time at it, and so does the
+    observer once they are started (its receive stamps must not lag theirs), until it returns
+    (0: normal scheduling)."""
     import tempfile
 
     import numpy as np
@@ -143,8 +144,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
-    from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode,
-                                          set_realtime_priority)
+    from exit_decision.ros import realtime
+    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
     from exit_decision.ros.stack_nodes import BRIDGE, plan
     from exit_decision.step_gaps import episode_and_step
@@ -195,7 +196,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
             decision_start = time.time()
             launcher.start('decision_node')
             if thread_priority:   # the observer too, its children started: its receive stamps must not lag theirs
-                set_realtime_priority(thread_priority)
+                realtime.apply(thread_priority)
             pending = None
             deadline = time.monotonic() + 600
             while counted['states'] < steps + 1 and time.monotonic() < deadline:
@@ -214,6 +215,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         finally:
             launcher.stop()
             probe.close()
+            if thread_priority:
+                realtime.reset()
     first_command = min(commands_at.values())
     window = sorted(at for at in states_at.values() if at >= first_command)[:steps + 1]
     elapsed, measured = window[-1] - window[0], len(window) - 1

@@ -23,15 +23,23 @@ def _common(parser: argparse.ArgumentParser) -> None:
                              'config (repeatable)')
 
 
-def _thread_priority(parser: argparse.ArgumentParser) -> None:
+def _thread_priority(parser: argparse.ArgumentParser, what: str = '') -> None:
     def priority(text: str) -> int:
         if not text.isdigit() or not 0 <= int(text) <= 99:
             raise argparse.ArgumentTypeError(f'{text!r} is not allowed; allowed: an integer in 0..99')
         return int(text)
     parser.add_argument('--thread-priority', type=priority, default=0, metavar='0-99',
-                        help='real-time (SCHED_FIFO) priority of the nodes on the decision path (bridge, graph '
+                        help=f'{what}real-time (SCHED_FIFO) priority of the nodes on the decision path (bridge, graph '
                              'builder, decision node); 0 (default): normal scheduling. Needs CAP_SYS_NICE or an '
                              'rtprio limit (ulimit -r)')
+
+
+def _check_thread_priority(priority: int) -> None:
+    """Before anything starts: a priority this user may not take is one line, not a node dying."""
+    from exit_decision.ros.realtime import refusal
+    reason = refusal(priority) if priority else None
+    if reason:
+        raise UsageError(f'--thread-priority {reason}')
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -204,6 +212,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from exit_decision.ros.decision_node import ALGORITHMS
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
+    _check_thread_priority(args.thread_priority)
     matrix = config.mode_matrix
     config.training.method(args.algorithm.removesuffix(CONDITIONED_SUFFIX))   # a known method, or one line naming them
     mode = args.mode or matrix.aggressive.punished
@@ -324,6 +333,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from exit_decision.benchmarks import bench_learning, bench_simulation
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.what in ('ros', 'all'):
+        _check_thread_priority(args.thread_priority)
     if args.what in ('sim', 'all'):
         print(bench_simulation(config, args.episodes, args.seed))
     if args.what in ('learning', 'all'):
@@ -569,7 +580,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument('--policy-dir', type=Path, default=None, help='ros: default the shipped policies/')
     bench.add_argument('--episodes', type=int, default=2, help='episodes per measurement (sweep: seeds per cell)')
     bench.add_argument('--seed', type=int, default=0)
-    _thread_priority(bench)
+    _thread_priority(bench, 'ros: the benchmark\'s observer too, once the nodes are started; ')
     bench.set_defaults(func=cmd_bench)
     return parser
 

@@ -36,6 +36,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
+from exit_decision.ros import realtime
 from exit_decision.ros.dds_defaults import apply_dds_defaults
 
 # DDS on loopback and our Fast DDS profile unless the user chose otherwise (dds_defaults), set
@@ -156,29 +157,11 @@ def declare_thread_priority(node: Node) -> int:
         'path; 0: the normal scheduling. Needs CAP_SYS_NICE or an rtprio limit >= the priority',
         read_only=True, integer_range=(0, 99)))
     if priority:
-        set_realtime_priority(priority)
+        try:
+            realtime.apply(priority)
+        except realtime.RealtimeRefused as refused:
+            raise ParameterError(f'parameter thread_priority: {refused}') from None
     return priority
-
-
-def set_realtime_priority(priority: int) -> None:
-    """Every thread of this process SCHED_FIFO at ``priority``; ParameterError (naming
-    ``thread_priority``) when the process may not."""
-    if not hasattr(os, 'SCHED_FIFO'):
-        raise ParameterError(f'parameter thread_priority: {priority} needs Linux real-time scheduling; allowed here: 0')
-    try:
-        for thread in os.listdir('/proc/self/task'):
-            try:
-                os.sched_setscheduler(int(thread), os.SCHED_FIFO, os.sched_param(priority))
-            except ProcessLookupError:   # it ended meanwhile
-                pass
-    except PermissionError:
-        import resource
-        limit = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
-        raise ParameterError(
-            f'parameter thread_priority: {priority} needs real-time scheduling rights, which this process lacks '
-            f'(its rtprio limit is {"unlimited" if limit == resource.RLIM_INFINITY else limit}, no CAP_SYS_NICE); '
-            f'allowed: 0, or grant them (an rtprio limit >= {priority} in /etc/security/limits.conf, or '
-            f'CAP_SYS_NICE)') from None
 
 
 def declare_config(node: Node) -> ProjectConfig:
