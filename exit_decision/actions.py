@@ -20,10 +20,15 @@ class ActionGrid:
         #: lane change and acceleration of every action index
         self.lane_change_of = np.repeat(np.array(self.lane_changes), len(self.accelerations))
         self.acceleration_of = np.tile(self.accelerations, len(self.lane_changes))
-        #: lane change -> (size,) bool, the actions that make it (read-only: shared by every mask)
-        self.rows_of = {change: self.lane_change_of == change for change in self.lane_changes}
-        for rows in self.rows_of.values():
+        # lane change -> (size,) bool, the actions that make it (read-only: shared by every mask)
+        self._rows = {change: self.lane_change_of == change for change in (-1, 0, 1)}
+        for rows in self._rows.values():
             rows.flags.writeable = False
+
+    def rows(self, lane_change: int) -> np.ndarray:
+        """(size,) bool, read-only: the actions with this lane change (none for one the grid
+        lacks), made once for every mask."""
+        return self._rows[lane_change]
 
     def index(self, lane_change: int, acceleration: float) -> int:
         """The action closest to the given lane change and acceleration."""

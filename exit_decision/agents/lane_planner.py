@@ -45,9 +45,9 @@ class LanePlanner:
             return mask
         lanes = self.geometry.route_lanes(vehicle.position)
         kept = mask.copy()
-        for change, rows in self.grid.rows_of.items():
+        for change in self.grid.lane_changes:
             if vehicle.lane_index + change not in lanes:
-                kept[rows] = False
+                kept[self.grid.rows(change)] = False
         return kept if kept.any() else mask
 
     def choose(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> int | None:

@@ -139,13 +139,13 @@ class RuleBasedDriver:
         allowed acceleration not above the wanted one, else the smallest allowed above it."""
         grid = self.grid
         lane_change, wanted = self.preferred(vehicle, snapshot)
-        if lane_change and not (lane_change in grid.rows_of and (mask & grid.rows_of[lane_change]).any()):
+        if lane_change and not (mask & grid.rows(lane_change)).any():
             # the shield refuses the change the rules accepted: keep lane and look for a gap
             wanted = self.gap_search(vehicle, lane_change, snapshot, self.acceleration(vehicle, snapshot))
             lane_change = 0
         for change in ([lane_change, 0] if lane_change else [0]):
-            rows = mask & grid.rows_of[change] if change in grid.rows_of else None
-            if rows is None or not rows.any():
+            rows = mask & grid.rows(change)
+            if not rows.any():
                 continue
             below = rows & (grid.acceleration_of <= wanted + 1e-9)
             pool = below if below.any() else rows

@@ -135,7 +135,7 @@ class Shield:
             if c.human_follower_braking and around.follower is not None \
                     and not around.follower.controlled and around.follower_gap < c.human_follower_distance:
                 ok &= self.not_hard_braking
-            allowed[grid.rows_of[lane_change]] = ok
+            allowed[grid.rows(lane_change)] = ok
         if not allowed.any():
             allowed[self.fallback] = True
         return allowed

@@ -181,13 +181,13 @@ class Trainer:
         e, grid = self.training.exploration, self.grid
         if not e.biased:
             return int(self.rng.choice(np.flatnonzero(mask)))
-        changes = [c for c in grid.lane_changes if (mask & grid.rows_of[c]).any()]
+        changes = [c for c in grid.lane_changes if (mask & grid.rows(c)).any()]
         if 0 in changes and (len(changes) == 1 or self.rng.random() < e.keep_lane_probability):
             change = 0
         else:
             sides = [c for c in changes if c != 0] or changes
             change = sides[self.rng.integers(len(sides))]
-        candidates = np.flatnonzero(mask & grid.rows_of[change])
+        candidates = np.flatnonzero(mask & grid.rows(change))
         wanted = self.rng.normal(0.0, e.acceleration_std)
         return int(candidates[np.argmin(np.abs(grid.acceleration_of[candidates] - wanted))])
 
