@@ -24,14 +24,15 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def _thread_priority(parser: argparse.ArgumentParser, what: str = '') -> None:
+    from exit_decision.ros.realtime import DESCRIPTION, PRIORITIES
+
     def priority(text: str) -> int:
-        if not text.isdigit() or not 0 <= int(text) <= 99:
-            raise argparse.ArgumentTypeError(f'{text!r} is not allowed; allowed: an integer in 0..99')
+        if not text.isdigit() or int(text) not in PRIORITIES:
+            raise argparse.ArgumentTypeError(f'{text!r} is not allowed; allowed: an integer in '
+                                             f'{PRIORITIES[0]}..{PRIORITIES[-1]}')
         return int(text)
-    parser.add_argument('--thread-priority', type=priority, default=0, metavar='0-99',
-                        help=f'{what}real-time (SCHED_FIFO) priority of the nodes on the decision path (bridge, graph '
-                             'builder, decision node); 0 (default): normal scheduling. Needs CAP_SYS_NICE or an '
-                             'rtprio limit (ulimit -r)')
+    parser.add_argument('--thread-priority', type=priority, default=0, metavar=f'{PRIORITIES[0]}-{PRIORITIES[-1]}',
+                        help=what + DESCRIPTION)
 
 
 def _check_thread_priority(priority: int) -> None:

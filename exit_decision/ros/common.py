@@ -153,9 +153,7 @@ def declare_thread_priority(node: Node) -> int:
     another process (docs/design.md, "ROS 2 -> Speed"). Needs the right to: CAP_SYS_NICE, or an
     rtprio limit of at least that priority; without it the node does not start, and says so."""
     priority = declare(node, 'thread_priority', 0, describe(
-        'real-time (SCHED_FIFO) priority of every thread of this node, 1-99, for the nodes on the decision '
-        'path; 0: the normal scheduling. Needs CAP_SYS_NICE or an rtprio limit >= the priority',
-        read_only=True, integer_range=(0, 99)))
+        realtime.DESCRIPTION, read_only=True, integer_range=(realtime.PRIORITIES[0], realtime.PRIORITIES[-1])))
     if priority:
         try:
             realtime.apply(priority)

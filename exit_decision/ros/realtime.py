@@ -12,6 +12,13 @@ import subprocess
 import sys
 
 
+#: what the parameter (and launch argument, and command-line option) allows, and says
+PRIORITIES = range(0, 100)
+DESCRIPTION = ('real-time (SCHED_FIFO) priority 1-99 of every thread of the nodes on the decision path (bridge, '
+               'graph builder, decision node); 0: normal scheduling. Needs CAP_SYS_NICE or an rtprio limit >= the '
+               'priority (ulimit -r)')
+
+
 class RealtimeRefused(PermissionError):
     """This process may not use real-time scheduling; the text says why and how to allow it."""
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from exit_decision.ros import realtime
+
 BRIDGE = 'sumo_bridge'
 
 
@@ -42,9 +44,7 @@ ARGUMENTS: dict[str, Argument] = {
     'bag_path': Argument('bags/exit_decision', 'bag directory (must not exist)'),
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
-    'thread_priority': Argument('0', 'real-time (SCHED_FIFO) priority 1-99 of the nodes on the decision path (bridge, '
-                                     'graph builder, decision node); 0: normal scheduling. Needs CAP_SYS_NICE or an '
-                                     'rtprio limit', int),
+    'thread_priority': Argument('0', realtime.DESCRIPTION, int),
     'config_dir': Argument('', 'directory with the YAML config; empty: the installed share/exit_decision/config'),
     'policy_dir': Argument('', 'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies'),
 }
