@@ -252,28 +252,30 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
             for name in memory_at_end if name in memory_at_first_command)])
 
 
-def process_memory_mb(launcher) -> dict[str, float]:
-    """Resident memory (VmRSS) of each running process of the launcher, from /proc: a long
-    ``bench ros`` shows whether a node's memory grows with the steps (the recorder's must not)."""
-    used = {}
+def proc_files(launcher, file: str) -> dict[str, str]:
+    """``/proc/<pid>/<file>`` of each running process of the launcher (one that has ended is left out)."""
+    texts = {}
     for name, process in launcher.processes.items():
         try:
-            status = Path(f'/proc/{process.pid}/status').read_text()
+            texts[name] = Path(f'/proc/{process.pid}/{file}').read_text()
         except OSError:   # it has ended
-            continue
-        used[name] = next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
-    return used
+            pass
+    return texts
+
+
+def process_memory_mb(launcher) -> dict[str, float]:
+    """Resident memory (VmRSS) of each running process of the launcher: a long ``bench ros``
+    shows whether a node's memory grows with the steps (the recorder's must not)."""
+    return {name: next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
+            for name, status in proc_files(launcher, 'status').items()}
 
 
 def process_cpu_seconds(launcher) -> dict[str, float]:
     """CPU time (user + system) each running process of the launcher has used, and this
-    process's own (``observer``: the benchmark's probe), read from /proc."""
+    process's own (``observer``: the benchmark's probe)."""
     ticks = os.sysconf('SC_CLK_TCK')
     used = {'observer': time.process_time()}
-    for name, process in launcher.processes.items():
-        try:
-            fields = Path(f'/proc/{process.pid}/stat').read_text().rsplit(')', 1)[1].split()
-        except OSError:   # it has ended
-            continue
+    for name, stat in proc_files(launcher, 'stat').items():
+        fields = stat.rsplit(')', 1)[1].split()
         used[name] = (int(fields[11]) + int(fields[12])) / ticks   # utime, stime (fields 14, 15 of stat)
     return used
