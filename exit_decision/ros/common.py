@@ -28,7 +28,6 @@ QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
 """
 from __future__ import annotations
 
-import os
 import signal
 import sys
 import time
@@ -196,6 +195,18 @@ class Diagnostics:
         if now >= self.quiet_until.get(key, 0.0):
             self.quiet_until[key] = now + REJECT_LOG_PERIOD
             self.node.get_logger().warning(f'rejected {what}: {reason}')
+
+    def out_of_sequence(self, gate, events, episode: int, step: int, what: str) -> bool:
+        """Reject and count (``rejected_out_of_sequence_<what>``) a message whose (episode, step)
+        ``gate`` (an ``input_checks.StepGate``) refuses; True if it did. A message of an episode
+        the gate does not know first takes what waits on ``events`` (the episode-events
+        subscription): its EVENT_STARTED, from the same bridge or player, came before it."""
+        if episode != gate.episode:
+            take_waiting(events)
+        reason = gate.refuse(episode, step)
+        if reason:
+            self.reject(f'out_of_sequence_{what}', what, reason)
+        return reason is not None
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos: QoSProfile, raw: bool = False):
         """``node.create_subscription`` that also counts messages lost before the node took

@@ -49,7 +49,7 @@ from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
-                                      declare_thread_priority, describe, run_node, take_waiting)
+                                      declare_thread_priority, describe, run_node)
 from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
@@ -294,11 +294,7 @@ class DecisionNode(Node):
         episode, step = episode_and_step(raw)
         if step % self.interval:
             return                                  # only decision steps are used
-        if episode != self.states_gate.episode:
-            take_waiting(self.events)   # its EVENT_STARTED came first (the bridge waits for it to be acknowledged)
-        reason = self.states_gate.refuse(episode, step)
-        if reason:
-            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+        if self.diagnostics.out_of_sequence(self.states_gate, self.events, episode, step, 'states'):
             return
         msg = deserialize_message(raw, VehicleStateArray)
         try:
@@ -313,11 +309,7 @@ class DecisionNode(Node):
     def on_graph(self, msg: GraphMsg) -> None:
         if msg.step % self.interval:
             return
-        if msg.episode != self.graph_gate.episode:
-            take_waiting(self.events)
-        reason = self.graph_gate.refuse(msg.episode, msg.step)
-        if reason:
-            self.diagnostics.reject('out_of_sequence_graphs', 'graph', reason)
+        if self.diagnostics.out_of_sequence(self.graph_gate, self.events, msg.episode, msg.step, 'graphs'):
             return
         try:
             graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)

@@ -18,7 +18,7 @@ from rclpy.serialization import deserialize_message
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, declare_thread_priority, run_node, take_waiting)
+                                      Diagnostics, declare_config, declare_thread_priority, run_node)
 from exit_decision.ros.conversions import checked_states, graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -54,11 +54,7 @@ class GraphBuilderNode(Node):
         episode, step = episode_and_step(raw)
         if step % self.interval:
             return
-        if episode != self.gate.episode:
-            take_waiting(self.events)   # its EVENT_STARTED came first (the bridge waits for it to be acknowledged)
-        reason = self.gate.refuse(episode, step)
-        if reason:
-            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+        if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
             return
         msg = deserialize_message(raw, VehicleStateArray)
         try:

@@ -49,7 +49,6 @@ from exit_decision.ros.common import (
     describe,
     follow,
     run_node,
-    take_waiting,
 )
 from exit_decision.ros.conversions import (
     MessageError,
@@ -125,11 +124,7 @@ class Visualizer(Node):
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, msg: VehicleStateArray) -> None:
-        if msg.episode != self.gate.episode:
-            take_waiting(self.events)   # its EVENT_STARTED came first (from the same bridge or player)
-        reason = self.gate.refuse(msg.episode, msg.step)
-        if reason:
-            self.diagnostics.reject('out_of_sequence_states', 'states', reason)
+        if self.diagnostics.out_of_sequence(self.gate, self.events, msg.episode, msg.step, 'states'):
             return
         try:
             vehicles = checked_states(msg, self.limits)
