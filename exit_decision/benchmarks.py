@@ -123,10 +123,11 @@ def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
 
 
 def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_priority: int = 0) -> str:
-    """The default stack (``stack_nodes.plan``: recorder and visualizer included), each node its
-    own process, synchronous mode, episodes until stopped.
+    """The default stack (``stack_nodes.plan``: recorder and visualizer included), each row of
+    the table its own process, synchronous mode, episodes until stopped.
 
-    The other nodes and the bridge start first; once they are up the decision node starts, and
+    The other processes and the bridge start first; once they are up the one with the decision
+    node starts, and
     an observer node measures from that moment the first answer of its get_parameters service,
     the bridge's first step (it waits for the decision node's commands publisher, which comes
     once the policies are loaded) and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
@@ -140,21 +141,20 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     import tempfile
 
     import numpy as np
-    from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
+    from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
     from exit_decision.ros import realtime
-    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
-    from exit_decision.ros.stack_nodes import BRIDGE, plan
+    from exit_decision.ros.stack_nodes import BRIDGE, plan, process_of
     from exit_decision.step_gaps import episode_and_step
 
     # (episode, step) -> when the observer's middleware received it (its receive stamp, so the
     # observer's own executor, which may lag on 2 busy cores, does not count)
     states_at: dict[tuple[int, int], float] = {}
     commands_at: dict[tuple[int, int], float] = {}
-    graphs_at: dict[tuple[int, int], float] = {}
     counted = {'states': 0, 'step_length': 0.0}   # states received since the first command
     probe = ProbeNode('bench_observer')
     node = probe.node
@@ -169,12 +169,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     def on_commands(raw: bytes, info) -> None:
         commands_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
 
-    def on_graph(raw: bytes, info) -> None:
-        graphs_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
-
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)
-    node.create_subscription(TrafficGraph, GRAPH_TOPIC, on_graph, STREAM_QOS, raw=True)
     parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
     answered = {'at': 0.0}
     cpu_at_first_command: dict[str, float] = {}
@@ -183,18 +179,19 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
                         'policy_dir': policy_dir, 'thread_priority': thread_priority}, extra_listeners=1)
         names = [name for name, _ in started]
+        deciding = process_of('decision_node', names)   # started last, timed
         launcher = StackLauncher(dict(started), Path(tmp) / 'logs')
         try:
             for name in names:
-                if name != 'decision_node':
+                if name != deciding:
                     launcher.start(name)
-            others = sum(1 for name in names if name not in (BRIDGE, 'decision_node'))
+            others = sum(1 for name in names if name not in (BRIDGE, deciding))
             deadline = time.monotonic() + 120
             while node.count_subscribers(STATES_TOPIC) < others + 1 and time.monotonic() < deadline:
                 launcher.check_alive()
                 probe.spin_once(0.1)
             decision_start = time.time()
-            launcher.start('decision_node')
+            launcher.start(deciding)
             if thread_priority:   # the observer too, its children started: its receive stamps must not lag theirs
                 realtime.apply(thread_priority)
             pending = None
@@ -220,8 +217,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     first_command = min(commands_at.values())
     window = sorted(at for at in states_at.values() if at >= first_command)[:steps + 1]
     elapsed, measured = window[-1] - window[0], len(window) - 1
-    answered_steps = [key for key in commands_at if key in states_at and key in graphs_at
-                      and window[0] <= states_at[key] <= window[-1]]
+    answered_steps = [key for key in commands_at if key in states_at and window[0] <= states_at[key] <= window[-1]]
 
     def milliseconds(later: dict, earlier: dict) -> np.ndarray:
         return np.array([(later[key] - earlier[key]) * 1000 for key in answered_steps])
@@ -241,8 +237,6 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
          f'first command after {first_command - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
         f'  states -> commands latency: {spread(latency)}',
-        f'    of which states -> graph (graph_builder): {spread(milliseconds(graphs_at, states_at))}; '
-        f'graph -> commands (decision_node): {spread(milliseconds(commands_at, graphs_at))}',
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
         f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {cores * 1000 * elapsed / measured:.2f} '

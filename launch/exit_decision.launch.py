@@ -3,8 +3,8 @@
     ros2 launch exit_decision exit_decision.launch.py mode:=AGGI episodes:=1
 
 The nodes of the one table in ``exit_decision/ros/stack_nodes.py`` (the one `exit-decision
-stack` starts from): a recorder writing a bag, the graph builder, the decision node, the
-visualizer (markers on /exit_decision/markers; `visualizer:=false` leaves it out) and the
+stack` starts from): a recorder writing a bag, the graph builder and the decision node (in one
+process, `graph_and_decision`), the visualizer (markers on /exit_decision/markers; `visualizer:=false` leaves it out) and the
 bridge, which waits for the others. When the bridge has run its episodes, the launch shuts
 down. `ros2 launch exit_decision exit_decision.launch.py --show-args` lists the arguments.
 """
@@ -16,7 +16,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from exit_decision.ros.dds_defaults import apply_dds_defaults
-from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, plan
+from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODE_NAMES, plan
 
 apply_dds_defaults()   # this process too (launch_ros may start a node in it), and every node it starts
 
@@ -24,8 +24,9 @@ apply_dds_defaults()   # this process too (launch_ros may start a node in it), a
 def start_nodes(context):
     """The table's nodes for the arguments given; the bridge's exit shuts the launch down."""
     given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
-    nodes = {name: Node(package='exit_decision', executable=name, name=name, parameters=[parameters],
-                        output='screen')
+    # a composed process is not named: a name would rename each of its nodes
+    nodes = {name: Node(package='exit_decision', executable=name, parameters=[parameters], output='screen',
+                        name=name if NODE_NAMES[name] == (name,) else None)
              for name, parameters in plan(given)}
     return [*nodes.values(),
             RegisterEventHandler(OnProcessExit(target_action=nodes[BRIDGE], on_exit=[

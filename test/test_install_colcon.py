@@ -127,7 +127,10 @@ def test_the_package_config_and_policies_come_from_the_install(install, bare_pyt
     assert not (Path(prefix) / 'share' / 'exit_decision').exists()
 
 
-def test_every_node_starts_from_the_install(install, bare_python, environment, tmp_path):
+@pytest.mark.parametrize('deciding', [('graph_builder', 'decision_node'), ('graph_and_decision',)],
+                         ids=['alone', 'composed'])
+def test_every_node_starts_from_the_install(install, bare_python, environment, tmp_path, deciding):
+    """``deciding``: the graph builder and the decision node as two processes, or composed in one."""
     from diagnostic_msgs.msg import DiagnosticArray
     from exit_decision_msgs.msg import CavCommandArray, TrafficGraph, VehicleStateArray
     from rosbags.rosbag2 import Reader
@@ -154,12 +157,13 @@ def test_every_node_starts_from_the_install(install, bare_python, environment, t
                                        STREAM_QOS)
     bag = tmp_path / 'bag'
     processes = {name: start(name, parameters) for name, parameters in (
-        ('recorder', {'bag_path': str(bag)}), ('graph_builder', {}), ('decision_node', {}), ('visualizer', {}))}
+        ('recorder', {'bag_path': str(bag)}), *[(name, {}) for name in deciding], ('visualizer', {}))}
+    listeners = len(processes) + 1   # each process listens to the states once (composed too), and the probe
     try:
         # each started alone keeps waiting for its peers, listening to the states
-        assert probe.spin_until(lambda: probe.node.count_subscribers(STATES_TOPIC) >= 5, 120), \
+        assert probe.spin_until(lambda: probe.node.count_subscribers(STATES_TOPIC) >= listeners, 120), \
             {name: log(name)[-1000:] for name in processes}
-        processes['sumo_bridge'] = start('sumo_bridge', {'episodes': 1, 'wait_for_subscribers': 5})
+        processes['sumo_bridge'] = start('sumo_bridge', {'episodes': 1, 'wait_for_subscribers': listeners})
         # 3 commands answer decision steps 0, 5 and 10: the states and graphs of 11 steps came before
         # them (each topic's messages may arrive at the probe in any order relative to the others)
         enough = lambda: (seen.get(COMMANDS_TOPIC, 0) >= 3 and seen.get(MARKERS_TOPIC, 0) >= 1  # noqa: E731
@@ -168,9 +172,9 @@ def test_every_node_starts_from_the_install(install, bare_python, environment, t
         dead = {name: log(name)[-1500:] for name, p in processes.items() if p.poll() is not None}
         assert not dead, dead
         assert enough(), seen
-        assert f'from {install}/share/exit_decision/policies' in log('decision_node')
+        assert f'from {install}/share/exit_decision/policies' in log(deciding[-1])
     finally:
-        for name in ['sumo_bridge', 'graph_builder', 'decision_node', 'visualizer', 'recorder']:
+        for name in ['sumo_bridge', *deciding, 'visualizer', 'recorder']:
             if name in processes and processes[name].poll() is None:
                 processes[name].send_signal(signal.SIGINT)
         for process in processes.values():

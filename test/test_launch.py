@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODES, plan
+from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODE_NAMES, NODES, plan, process_of
 
 REPO = Path(__file__).resolve().parent.parent
 LAUNCH_FILE = REPO / 'launch' / 'exit_decision.launch.py'
@@ -61,7 +61,11 @@ def test_launch_file_starts_the_tables_nodes_and_shuts_down_when_the_bridge_ends
     assert declared == {name: argument.default for name, argument in ARGUMENTS.items()}
     nodes = [a for a in actions if type(a).__name__ == 'Node']
     assert [(n.kwargs['executable'], n.kwargs['parameters'][0]) for n in nodes] == plan(given)
-    assert all(n.kwargs['package'] == 'exit_decision' and n.kwargs['name'] == n.kwargs['executable'] for n in nodes)
+    # a single node is named as its executable; a composed process is not named (a name would rename its nodes)
+    assert all(n.kwargs['package'] == 'exit_decision' for n in nodes)
+    assert {n.kwargs['executable']: n.kwargs['name'] for n in nodes} == {
+        executable: executable if names == (executable,) else None for executable, names in NODE_NAMES.items()
+        if executable in dict(plan(given))}
     handlers = [a.args[0] for a in actions if type(a).__name__ == 'RegisterEventHandler']
     assert len(handlers) == 1 and handlers[0].kwargs['target_action'].kwargs['executable'] == BRIDGE
     assert [type(e.kwargs['event']).__name__ for e in handlers[0].kwargs['on_exit']] == ['Shutdown']
@@ -71,16 +75,18 @@ def test_the_bridge_waits_for_every_state_listener_of_the_plan():
     full, without = plan({}), plan({'visualizer': False})
     assert [name for name, _ in full] == [node.executable for node in NODES] and full[-1][0] == BRIDGE
     assert 'visualizer' not in dict(without)
-    assert dict(full)[BRIDGE]['wait_for_subscribers'] == 4
-    assert dict(without)[BRIDGE]['wait_for_subscribers'] == 3
-    assert dict(plan({}, extra_listeners=1))[BRIDGE]['wait_for_subscribers'] == 5
+    # recorder, visualizer, and the graph builder of graph_and_decision (its decision node takes its graphs in the process)
+    assert dict(full)[BRIDGE]['wait_for_subscribers'] == 3
+    assert dict(without)[BRIDGE]['wait_for_subscribers'] == 2
+    assert dict(plan({}, extra_listeners=1))[BRIDGE]['wait_for_subscribers'] == 4
+    assert process_of('decision_node', dict(full)) == process_of('graph_builder', dict(full)) == 'graph_and_decision'
 
 
 def test_arguments_become_typed_parameters_and_empty_ones_keep_the_nodes_default():
     nodes = dict(plan({'episodes': '2', 'use_sim_time': 'true', 'policy_dir': ''}))
     assert nodes[BRIDGE]['episodes'] == 2 and nodes[BRIDGE]['use_sim_time'] is True
     assert all(node['use_sim_time'] is True for node in nodes.values())
-    assert 'policy_dir' not in nodes['decision_node'] and 'config_dir' not in nodes['graph_builder']
+    assert 'policy_dir' not in nodes['graph_and_decision'] and 'config_dir' not in nodes['graph_and_decision']
     with pytest.raises(ValueError, match="argument visualizer: 'yes' is not allowed; allowed: true or false"):
         plan({'visualizer': 'yes'})
     with pytest.raises(ValueError, match='unknown argument'):
@@ -93,7 +99,8 @@ def test_every_node_of_the_table_is_a_console_script():
     scripts = next(node for node in ast.walk(tree) if isinstance(node, ast.Dict)
                    and any(isinstance(k, ast.Constant) and k.value == 'console_scripts' for k in node.keys))
     entries = [item.value.split('=')[0].strip() for item in scripts.values[0].elts]
-    assert {node.executable for node in NODES} | {'player'} <= set(entries)
+    # the two composed nodes can also run alone (ros2 run exit_decision decision_node)
+    assert {node.executable for node in NODES} | {'player', 'graph_builder', 'decision_node'} <= set(entries)
 
 
 # --- loopback default ------------------------------------------------------------------------
@@ -168,7 +175,7 @@ def test_every_entry_point_takes_the_default_from_one_place():
         if 'rclpy.init(' in path.read_text():
             starters.add(path.relative_to(REPO).as_posix())
     assert starters == {'exit_decision/ros/common.py'}
-    for module in [node.executable for node in NODES] + ['player', 'launcher']:
+    for module in [node.executable for node in NODES] + ['graph_builder', 'decision_node', 'player', 'launcher']:
         tree = ast.parse((REPO / 'exit_decision' / 'ros' / f'{module}.py').read_text())
         imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
         assert 'exit_decision.ros.common' in imported, module

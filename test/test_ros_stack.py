@@ -21,6 +21,7 @@ from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_
 from exit_decision.ros.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
+from exit_decision.ros.stack_nodes import plan
 from exit_decision.scenario.geometry import RoadGeometry
 
 from ros_helpers import random_policies, small_config_dir, stop
@@ -693,10 +694,10 @@ def test_messages_a_stalled_node_never_took_are_counted_as_dropped_on_their_topi
         stop(node)
 
 
-def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
+def write_episode_bag(bag, config_dir, steps: int = 40, with_graphs: bool = True) -> int:
     """A bag of one synchronous episode's first ``steps`` steps as the stack records it: the
-    bridge's EVENT_STARTED, then the states of each step and the graph of each decision step,
-    0.1 s apart. Its decision steps."""
+    bridge's EVENT_STARTED, then the states of each step and (``with_graphs``) the graph of each
+    decision step, 0.1 s apart. Its decision steps."""
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -715,15 +716,15 @@ def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
         with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             def connection(topic, name):
                 return writer.add_connection(topic, f'exit_decision_msgs/msg/{name}', typestore=store)
-            events, states, graphs = (connection(EPISODE_TOPIC, 'EpisodeEvent'),
-                                      connection(STATES_TOPIC, 'VehicleStateArray'), connection(GRAPH_TOPIC, 'TrafficGraph'))
+            events, states = connection(EPISODE_TOPIC, 'EpisodeEvent'), connection(STATES_TOPIC, 'VehicleStateArray')
+            graphs = connection(GRAPH_TOPIC, 'TrafficGraph') if with_graphs else None
             writer.write(events, 999_999_999, serialize_message(episode_event_to_msg(
                 EpisodeEvent.EVENT_STARTED, episode=0, seed=10_000, steps=0, time=0.0)))
             for step in range(steps):
                 stamp = 1_000_000_000 + step * 100_000_000
                 msg = states_to_msg(result.vehicles, episode=0, step=result.step, step_length=0.1)
                 writer.write(states, stamp, serialize_message(msg))
-                if result.step % config.env.decision_interval == 0:
+                if with_graphs and result.step % config.env.decision_interval == 0:
                     writer.write(graphs, stamp, serialize_message(graph_to_msg(
                         builder.build(result.vehicles), feature_set=config.graph.feature_set, episode=0,
                         step=result.step, stamp=msg.header.stamp)))
@@ -733,12 +734,15 @@ def write_episode_bag(bag, config_dir, steps: int = 40) -> int:
     return len(range(0, steps, config.env.decision_interval))
 
 
-def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setup, tmp_path):
+@pytest.mark.parametrize('deciding', ['decision_node', 'graph_and_decision'])
+def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setup, tmp_path, deciding):
     """The decision node decides every pass of a looped bag (the player sends the episode's
-    start on each pass); while playing, the player takes a new rate and stops looping on request."""
+    start on each pass), alone (graphs from the bag) or composed with its graph builder (which
+    hands it the starts and the graphs it builds from the bag's states); while playing, the
+    player takes a new rate and stops looping on request."""
     bag = tmp_path / 'bag'
-    decisions = write_episode_bag(bag, setup['config_dir'])
-    decision = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
+    decisions = write_episode_bag(bag, setup['config_dir'], with_graphs=deciding == 'decision_node')
+    decision = start_node(deciding, {'config_dir': setup['config_dir'], 'policy_dir': setup['policies']},
                           tmp_path / 'decision.log')
     test = ProbeNode('loop_test')
     commands = []
@@ -776,5 +780,4 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
                    'resident memory [MB] at the first command -> after the steps: '):
         assert figure in text, (figure, text)
     for line in ('CPU per step', 'resident memory'):
-        assert all(name in next(row for row in text.splitlines() if line in row) for name in
-                   ('sumo_bridge', 'graph_builder', 'decision_node', 'recorder', 'visualizer')), text
+        assert all(name in next(row for row in text.splitlines() if line in row) for name, _ in plan({})), text

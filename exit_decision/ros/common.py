@@ -31,7 +31,7 @@ from __future__ import annotations
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -261,9 +261,10 @@ def take_waiting(subscription, limit: int | None = None) -> int:
 
 
 class Waiter:
-    """A node's wait, lean: one wait set on its subscriptions, services, clients, timers and
-    guard conditions. Each subscription that is ready hands over its queue at once, up to its
-    QoS depth a pass (``take_waiting``), in the order the node created them (a node that
+    """The wait of a process's nodes (one, or several composed in one process), lean: one wait
+    set on their subscriptions, services, clients, timers and guard conditions. Each
+    subscription that is ready hands over its queue at once, up to its QoS depth a pass
+    (``take_waiting``), in the order the nodes (given in order) created them (a node that
     subscribes to the episode events first sees an episode's start before its messages); a
     guard condition's callback runs here (the wait takes its trigger). rclpy's executor
     (``spin_once(0)``) serves the rest: services, clients and timers when they are ready, and
@@ -275,14 +276,16 @@ class Waiter:
 
     EXECUTOR_PERIOD = 0.5   # [s]
 
-    def __init__(self, node: Node, executor: SingleThreadedExecutor):
-        self.node, self.executor = node, executor
+    def __init__(self, nodes: Sequence[Node], executor: SingleThreadedExecutor):
+        self.nodes, self.executor = tuple(nodes), executor
         self.executor_passed = time.monotonic()
 
     def spin_once(self, timeout_sec: float) -> None:
-        node = self.node
-        entities = {'subscription': list(node.subscriptions), 'service': list(node.services),
-                    'client': list(node.clients), 'timer': list(node.timers), 'guard_condition': list(node.guards)}
+        nodes = self.nodes
+        entities = {kind: [item for node in nodes for item in getattr(node, attribute)]
+                    for kind, attribute in (('subscription', 'subscriptions'), ('service', 'services'),
+                                            ('client', 'clients'), ('timer', 'timers'),
+                                            ('guard_condition', 'guards'))}
         with ExitStack() as alive:   # as rclpy's executor: no entity destroyed while waited on
             for kind, items in entities.items():
                 kept = []
@@ -295,7 +298,7 @@ class Waiter:
                 entities[kind] = kept
             wait_set = _rclpy.WaitSet(len(entities['subscription']), len(entities['guard_condition']),
                                       len(entities['timer']), len(entities['client']), len(entities['service']), 0,
-                                      node.context.handle)
+                                      nodes[0].context.handle)
             for kind, add in (('subscription', wait_set.add_subscription), ('service', wait_set.add_service),
                               ('client', wait_set.add_client), ('timer', wait_set.add_timer),
                               ('guard_condition', wait_set.add_guard_condition)):
@@ -335,7 +338,7 @@ class ProbeNode:
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.waiter = Waiter(self.node, self.executor)
+        self.waiter = Waiter([self.node], self.executor)
 
     def spin_once(self, timeout_sec: float) -> None:
         """Take what is waiting, or wait up to ``timeout_sec`` for something (``Waiter``)."""
@@ -384,19 +387,23 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def spin(node: Node) -> None:
-    """``rclpy.spin``, lean (``Waiter``), that wakes at least twice a second, so Ctrl-C or SIGTERM
-    stops the node even when nothing else would wake it (under use_sim_time with no /clock no
-    timer ever fires)."""
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    waiter = Waiter(node, executor)
-    while node.context.ok():
+def spin(nodes: Sequence[Node]) -> None:
+    """``rclpy.spin`` of a process's nodes, lean (``Waiter``), that wakes at least twice a second,
+    so Ctrl-C or SIGTERM stops them even when nothing else would wake them (under use_sim_time
+    with no /clock no timer ever fires)."""
+    executor = SingleThreadedExecutor(context=nodes[0].context)
+    for node in nodes:
+        executor.add_node(node)
+    waiter = Waiter(nodes, executor)
+    while nodes[0].context.ok():
         waiter.spin_once(0.5)
 
 
-def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], None] | None = None) -> int:
-    """Standard main: init, make the node, spin (or ``run``), clean shutdown on Ctrl-C/SIGTERM.
+def run_node(name: str, make_node: Callable[[], Node | Sequence[Node]],
+             run: Callable[[Node], None] | None = None) -> int:
+    """Standard main: init, make the node (or the nodes composed in this process, in the order
+    their subscriptions are served), spin (or ``run`` the one node), clean shutdown on
+    Ctrl-C/SIGTERM.
 
     A node that cannot start (bad config, missing or corrupt policy) says why and exits with 1."""
     # KeyboardInterrupt on SIGINT and SIGTERM (ours, noting the signal), instead of rclpy's, which
@@ -404,10 +411,14 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
     rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
-    node = None
+    nodes: Sequence[Node] = ()
     try:
-        node = make_node()
-        (run or spin)(node)
+        made = make_node()
+        nodes = [made] if isinstance(made, Node) else list(made)
+        if run is not None:
+            run(*nodes)
+        else:
+            spin(nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
@@ -419,7 +430,7 @@ def run_node(name: str, make_node: Callable[[], Node], run: Callable[[Node], Non
         print(f'[{name}] cannot start: {error}', file=sys.stderr)
         return 1
     finally:
-        if node is not None:
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0

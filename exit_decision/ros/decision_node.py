@@ -22,7 +22,10 @@ accepted one is used from the next graph. Diagnostics count decisions, shield ov
 the network's first choice, and rejected messages; the
 CAVs overridden at a decision are published on /exit_decision/shield_overrides.
 
-A graph or a states message is taken only if it can follow the current episode and step
+In the stack it runs composed with the graph builder in one process (``graph_and_decision``),
+which hands it each decision step's checked states and graph directly; started alone
+(``ros2 run exit_decision decision_node``) it subscribes to both topics. Alone, a graph or a
+states message is taken only if it can follow the current episode and step
 (the sequence starts afresh on the bridge's or the player's EVENT_STARTED, and only then)
 and every field fits (sizes, finite values, the scenario's lanes, ids and ranges); otherwise
 it is rejected whole, counted on /diagnostics and changes nothing.
@@ -71,8 +74,13 @@ def default_policy_dir() -> Path:
 
 
 class DecisionNode(Node):
-    def __init__(self):
+    """``composed``: the graph builder of the same process (``graph_and_decision``) hands this
+    node the episode events and each decision step's checked states with their graph
+    (``on_episode``, ``decide``): it subscribes to neither, and nothing crosses a process."""
+
+    def __init__(self, composed: bool = False):
         super().__init__('decision_node')
+        self.composed = composed
         config = declare_config(self)
         declare_thread_priority(self)
         def p(name, default, descriptor):
@@ -196,11 +204,12 @@ class DecisionNode(Node):
         self.destroy_guard_condition(self.loaded_signal)
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
-        # events first: when an episode's start and its first messages are both waiting, the
-        # node's wait (common.Waiter) empties the queue of the subscription created first first
-        self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
-        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+        if not self.composed:
+            # events first: when an episode's start and its first messages are both waiting, the
+            # node's wait (common.Waiter) empties the queue of the subscription created first first
+            self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+            self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+            self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         self.get_logger().info(f'loaded {len(self.controllers)} policies from {self.policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
@@ -324,10 +333,18 @@ class DecisionNode(Node):
         if key not in self.graphs or key not in self.states:
             self.forget_before((key[0], key[1] - PAIRING_WINDOW * self.interval))
             return
-        if key <= self.last_decided:
-            return
         (graph, stamp), vehicles = self.graphs.pop(key), self.states.pop(key)
         self.forget_before(key)
+        self.decide(key, graph, vehicles, stamp)
+
+    def decide(self, key: tuple[int, int], graph: TrafficGraph, vehicles: list, stamp) -> None:
+        """Decide the step ``key`` = (episode, step) from its graph and checked states, and
+        publish the commands (then the shield's overrides), once per step."""
+        if key <= self.last_decided:
+            return
+        if not self.controllers:   # composed: the graph builder is up before the policies are loaded
+            self.diagnostics.count('graphs_before_policies_loaded')
+            return
         self.last_decided = key
         try:
             controller = self.controller()

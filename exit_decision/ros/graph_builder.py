@@ -12,6 +12,8 @@ otherwise it is rejected whole, counted on /diagnostics and changes nothing.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
@@ -24,10 +26,18 @@ from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.step_gaps import episode_and_step
 
+if TYPE_CHECKING:
+    from exit_decision.ros.decision_node import DecisionNode
+
 
 class GraphBuilderNode(Node):
-    def __init__(self):
+    """``decision``: the decision node composed in the same process (``graph_and_decision``),
+    or None. It gets the episode events and each graph with its checked states directly, and
+    decides before the graph is published (for the recorder and the visualizer)."""
+
+    def __init__(self, decision: DecisionNode | None = None):
         super().__init__('graph_builder')
+        self.decision = decision
         config = declare_config(self)
         declare_thread_priority(self)
         road = config.scenario.road
@@ -48,6 +58,8 @@ class GraphBuilderNode(Node):
         if msg.event == EpisodeEvent.EVENT_STARTED:
             self.gate.start(msg.episode)
             self.builder.reset()
+        if self.decision is not None:
+            self.decision.on_episode(msg)
 
     def on_states(self, raw: bytes) -> None:
         # (episode, step) first: other steps, and a message that cannot follow (a flood), cost no decoding
@@ -58,11 +70,14 @@ class GraphBuilderNode(Node):
             return
         msg = deserialize_message(raw, VehicleStateArray)
         try:
-            graph = self.builder.build(checked_states(msg, self.limits))
+            vehicles = checked_states(msg, self.limits)
+            graph = self.builder.build(vehicles)
         except (InputError, GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
             return
         self.diagnostics.count('skipped_decision_steps', self.gate.accept(msg.step) // self.interval)
+        if self.decision is not None:
+            self.decision.decide((msg.episode, msg.step), graph, vehicles, msg.header.stamp)
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=msg.episode,
                                             step=msg.step, stamp=msg.header.stamp))
         self.diagnostics.count('graphs')

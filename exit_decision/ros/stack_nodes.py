@@ -25,10 +25,15 @@ class Argument:
 
 @dataclass(frozen=True)
 class StackNode:
-    executable: str                 # a console_scripts entry point of setup.py; also the node's name
+    executable: str                 # a console_scripts entry point of setup.py
     arguments: tuple[str, ...]      # launch arguments it takes as parameters
     listens_to_states: bool         # subscribes to the vehicle states: the bridge waits for it
     enabled_by: str = ''            # a true/false argument that leaves it out when false
+    composed: tuple[str, ...] = ()  # the nodes it runs in one process; empty: one, named as the executable
+
+    @property
+    def node_names(self) -> tuple[str, ...]:
+        return self.composed or (self.executable,)
 
 
 ARGUMENTS: dict[str, Argument] = {
@@ -51,9 +56,11 @@ ARGUMENTS: dict[str, Argument] = {
 
 NODES: tuple[StackNode, ...] = (
     StackNode('recorder', ('bag_path', 'config_dir', 'use_sim_time'), listens_to_states=True),
-    StackNode('graph_builder', ('config_dir', 'use_sim_time', 'thread_priority'), listens_to_states=True),
-    StackNode('decision_node', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
-                                'thread_priority'), listens_to_states=True),
+    # the graph builder and the decision node in one process (ros/graph_and_decision.py): the
+    # graph builder listens to the states and hands the decision node its graphs
+    StackNode('graph_and_decision', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
+                                     'thread_priority'), listens_to_states=True,
+              composed=('graph_builder', 'decision_node')),
     StackNode('visualizer', ('config_dir', 'use_sim_time'), listens_to_states=True, enabled_by='visualizer'),
     StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time', 'thread_priority'),
               listens_to_states=False),
@@ -72,6 +79,15 @@ def typed(name: str, text: str):
     except (KeyError, ValueError):
         allowed = 'true or false' if kind is bool else 'an integer' if kind is int else 'a string'
         raise ValueError(f'argument {name}: {text!r} is not allowed; allowed: {allowed}') from None
+
+
+#: executable -> the ROS nodes its process runs
+NODE_NAMES: dict[str, tuple[str, ...]] = {node.executable: node.node_names for node in NODES}
+
+
+def process_of(node_name: str, executables) -> str:
+    """Which of these executables (of the table) runs the node ``node_name``."""
+    return next(executable for executable in executables if node_name in NODE_NAMES[executable])
 
 
 def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[str, dict[str, object]]]:

@@ -91,7 +91,7 @@ class SumoBridge(Node):
         self.pending: dict[str, CavCommand] | None = None   # accepted, not yet applied
         self.executor_ = SingleThreadedExecutor(context=self.context)
         self.executor_.add_node(self)
-        self.waiter = Waiter(self, self.executor_)   # the waits of the loop: commands taken without an executor pass
+        self.waiter = Waiter([self], self.executor_)   # the waits of the loop: commands taken without an executor pass
         self.get_logger().info(f'{self.timing} bridge, {self.episodes or "unlimited"} episode(s) from seed '
                                f'{self.seed}, decisions every {self.interval} steps')
 

@@ -1,0 +1,36 @@
+"""graph_and_decision: the graph builder and the decision node composed in one process.
+
+The same two nodes as ``graph_builder`` and ``decision_node`` (their names, parameters,
+services and diagnostics: ``ros2 param set /decision_node mode CONP`` works as before), served
+by one wait. The graph builder hands the decision node the episode events and each decision
+step's checked states with their graph in the process; the decision node subscribes to
+neither topic, and the graph is published after the commands, for the recorder and the
+visualizer. So a decision step's states are decoded and checked once, not twice, and the
+commands do not wait for the graph to be serialised, sent to another process and decoded
+there (docs/design.md, "ROS 2 -> Speed"). The stack starts this process
+(``stack_nodes.NODES``); the two executables stay for a decision node of one's own, or a
+graph builder for one's own decision maker.
+
+Parameters given with ``--ros-args -p`` reach both nodes (each takes those it declares); a
+remapping of ``__node`` would name both alike: set a node's parameter as
+``-p decision_node:mode:=CONP`` if needed.
+"""
+from __future__ import annotations
+
+from exit_decision.ros.common import run_node
+from exit_decision.ros.decision_node import DecisionNode
+from exit_decision.ros.graph_builder import GraphBuilderNode
+
+
+def make_nodes() -> list:
+    """The decision node first (its policies start loading at once), then its graph builder."""
+    decision = DecisionNode(composed=True)
+    return [GraphBuilderNode(decision), decision]
+
+
+def main() -> int:
+    return run_node('graph_and_decision', make_nodes)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
