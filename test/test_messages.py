@@ -93,3 +93,64 @@ def test_malformed_messages_are_rejected_naming_the_field():
     commands.commands[0].acceleration = math.inf
     with pytest.raises(MessageError, match="'CAV_1' acceleration is not finite"):
         commands_from_msg(commands)
+
+
+# --- vehicle states as CDR bytes (ros/states_cdr.py: what the bridge publishes and the nodes decode) ---
+
+HIGHWAY = ('Highway_0', 'Highway_1', 'Highway_2')
+
+
+def episode_states(steps: int = 300):
+    """Every step's vehicles of a real episode (SUMO's own drivers, so CAVs brake and change lanes)."""
+    from exit_decision.config import default_config_dir, load_project
+    from exit_decision.env import ExitDecisionEnv
+    env = ExitDecisionEnv(load_project(default_config_dir()), cav_driver='sumo')
+    try:
+        env.reset(seed=10_000)
+        result, out = env.sim.state, []
+        for _ in range(steps):
+            out.append((result.step, result.vehicles))
+            result, _ = env.simulate_step(None)
+        return out
+    finally:
+        env.close()
+
+
+def test_states_encoded_as_cdr_are_the_message_rclpy_reads():
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from exit_decision.ros.states_cdr import decode_states, encode_states
+    vehicles_seen = 0
+    for step, vehicles in episode_states():
+        ours = encode_states(vehicles, episode=3, step=step, step_length=0.1)
+        expected = states_to_msg(vehicles, episode=3, step=step, step_length=0.1)
+        assert deserialize_message(ours, VehicleStateArray) == expected, f'step {step}'
+        decoded = decode_states(serialize_message(expected), HIGHWAY)   # rclpy's bytes, padding and all
+        assert decoded.vehicles == states_from_msg(expected, HIGHWAY) == list(vehicles), f'step {step}'
+        assert (decoded.episode, decoded.step, decoded.step_length, decoded.stamp) == (
+            3, step, 0.1, expected.header.stamp)
+        vehicles_seen += len(vehicles)
+    assert vehicles_seen > 1000
+
+
+def test_malformed_cdr_states_are_refused_naming_what():
+    from rclpy.serialization import serialize_message
+
+    from exit_decision.ros.states_cdr import decode_states, encode_states
+    vehicles = sample_vehicles()
+    little = encode_states(vehicles, episode=1, step=5, step_length=0.1)
+    assert decode_states(little, HIGHWAY).vehicles == vehicles
+    with pytest.raises(MessageError, match='not little-endian CDR'):
+        decode_states(b'\x00\x00' + little[2:], HIGHWAY)
+    with pytest.raises(MessageError, match='not a VehicleStateArray'):
+        decode_states(little[:-12], HIGHWAY)   # cut short
+    bad = states_to_msg(vehicles, episode=1, step=5, step_length=0.1)
+    bad.vehicles[1].lateral_offset = math.inf
+    with pytest.raises(MessageError, match="'HV2_1': lateral_offset is not finite"):
+        decode_states(serialize_message(bad), HIGHWAY)
+    bad.vehicles[1].lateral_offset, bad.vehicles[1].vehicle_class = 0.0, 9
+    with pytest.raises(MessageError, match='vehicle_class 9 is not a known class'):
+        decode_states(serialize_message(bad), HIGHWAY)
+    bad.vehicles[1].vehicle_class, bad.vehicles[1].vehicle_id = 0, 'CAV_3'
+    with pytest.raises(MessageError, match='appears twice'):
+        decode_states(serialize_message(bad), HIGHWAY)

@@ -18,7 +18,7 @@ from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray
 
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
-from exit_decision.input_checks import InputError, StateLimits
+from exit_decision.input_checks import InputError
 from exit_decision.shield_overrides import ShieldOverride
 
 CLASS_CODES = {name: getattr(VehicleStateMsg, f'CLASS_{name}') for name in VEHICLE_CLASSES}
@@ -48,15 +48,30 @@ def vehicle_to_msg(vehicle: VehicleState) -> VehicleStateMsg:
         route_target=vehicle.route_target, controlled=vehicle.controlled)
 
 
+VEHICLE_NUMBERS = ('position', 'lateral_offset', 'speed', 'acceleration', 'length', 'lane_speed_limit')
+
+
+def check_vehicle_fields(vehicle_id: str, vehicle_class: int, numbers: Sequence[float]) -> None:
+    """MessageError unless a vehicle's id is not empty, its class code is known and its numbers
+    (``VEHICLE_NUMBERS``, in order) are finite: what a message can carry that no vehicle has.
+    (``input_checks.StateLimits`` then checks the rest against the scenario.)"""
+    if vehicle_class not in CLASS_NAMES:
+        raise MessageError(f'vehicle {vehicle_id!r}: vehicle_class {vehicle_class} is not a known class')
+    for name, value in zip(VEHICLE_NUMBERS, numbers):
+        if not math.isfinite(value):
+            raise MessageError(f'vehicle {vehicle_id!r}: {name} is not finite')
+    if not vehicle_id:
+        raise MessageError('a vehicle has an empty vehicle_id')
+
+
+def check_unique_ids(vehicles: Sequence[VehicleState]) -> None:
+    if len({v.vehicle_id for v in vehicles}) != len(vehicles):
+        raise MessageError('vehicles: a vehicle_id appears twice')
+
+
 def vehicle_from_msg(msg: VehicleStateMsg, highway_edges: Collection[str]) -> VehicleState:
     """``highway_edges``: the road's highway sections (``RoadConfig.names``); any other edge is a ramp."""
-    if msg.vehicle_class not in CLASS_NAMES:
-        raise MessageError(f'vehicle {msg.vehicle_id!r}: vehicle_class {msg.vehicle_class} is not a known class')
-    for name in ('position', 'lateral_offset', 'speed', 'acceleration', 'length', 'lane_speed_limit'):
-        if not math.isfinite(getattr(msg, name)):
-            raise MessageError(f'vehicle {msg.vehicle_id!r}: {name} is not finite')
-    if not msg.vehicle_id:
-        raise MessageError('a vehicle has an empty vehicle_id')
+    check_vehicle_fields(msg.vehicle_id, msg.vehicle_class, [getattr(msg, name) for name in VEHICLE_NUMBERS])
     return VehicleState(
         vehicle_id=msg.vehicle_id, vehicle_class=CLASS_NAMES[msg.vehicle_class], lane_index=msg.lane_index,
         edge_id=msg.edge_id, position=msg.position, lateral_offset=msg.lateral_offset, speed=msg.speed,
@@ -76,16 +91,7 @@ def states_to_msg(vehicles: Sequence[VehicleState], *, episode: int, step: int, 
 
 def states_from_msg(msg: VehicleStateArray, highway_edges: Collection[str]) -> list[VehicleState]:
     vehicles = [vehicle_from_msg(v, highway_edges) for v in msg.vehicles]
-    if len({v.vehicle_id for v in vehicles}) != len(vehicles):
-        raise MessageError('vehicles: a vehicle_id appears twice')
-    return vehicles
-
-
-def checked_states(msg: VehicleStateArray, limits: StateLimits) -> list[VehicleState]:
-    """The vehicles of a states message, every field checked against the scenario (InputError
-    naming the first that does not fit): what the graph builder and the decision node take."""
-    vehicles = states_from_msg(msg, limits.highway_edges)
-    limits.check(vehicles, step=msg.step, step_length=msg.step_length)
+    check_unique_ids(vehicles)
     return vehicles
 
 

@@ -42,7 +42,6 @@ from exit_decision_msgs.msg import (CavCommandArray, EpisodeEvent, ShieldOverrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.serialization import deserialize_message
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
@@ -53,7 +52,8 @@ from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
                                       declare_thread_priority, describe, run_node)
-from exit_decision.ros.conversions import checked_states, commands_to_msg, graph_from_msg, overrides_to_msg
+from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, overrides_to_msg
+from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -305,15 +305,14 @@ class DecisionNode(Node):
             return                                  # only decision steps are used
         if self.diagnostics.out_of_sequence(self.states_gate, self.events, episode, step, 'states'):
             return
-        msg = deserialize_message(raw, VehicleStateArray)
         try:
-            vehicles = checked_states(msg, self.limits)
+            vehicles = checked_states_cdr(raw, self.limits).vehicles
         except InputError as error:
-            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
+            self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
-        self.diagnostics.count('skipped_states', self.states_gate.accept(msg.step) // self.interval)
-        self.states[(msg.episode, msg.step)] = vehicles
-        self.try_decide((msg.episode, msg.step))
+        self.diagnostics.count('skipped_states', self.states_gate.accept(step) // self.interval)
+        self.states[(episode, step)] = vehicles
+        self.try_decide((episode, step))
 
     def on_graph(self, msg: GraphMsg) -> None:
         if msg.step % self.interval:

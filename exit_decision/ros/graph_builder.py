@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING
 
 from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
                                       Diagnostics, declare_config, declare_thread_priority, run_node)
-from exit_decision.ros.conversions import checked_states, graph_to_msg
+from exit_decision.ros.conversions import graph_to_msg
+from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.step_gaps import episode_and_step
@@ -68,18 +68,17 @@ class GraphBuilderNode(Node):
             return
         if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
             return
-        msg = deserialize_message(raw, VehicleStateArray)
         try:
-            vehicles = checked_states(msg, self.limits)
-            graph = self.builder.build(vehicles)
+            states = checked_states_cdr(raw, self.limits)
+            graph = self.builder.build(states.vehicles)
         except (InputError, GraphInputError, GraphCapacityError) as error:
-            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
+            self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
-        self.diagnostics.count('skipped_decision_steps', self.gate.accept(msg.step) // self.interval)
+        self.diagnostics.count('skipped_decision_steps', self.gate.accept(step) // self.interval)
         if self.decision is not None:
-            self.decision.decide((msg.episode, msg.step), graph, vehicles, msg.header.stamp)
-        self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=msg.episode,
-                                            step=msg.step, stamp=msg.header.stamp))
+            self.decision.decide((episode, step), graph, states.vehicles, states.stamp)
+        self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=episode, step=step,
+                                            stamp=states.stamp))
         self.diagnostics.count('graphs')
 
 

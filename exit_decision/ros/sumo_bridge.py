@@ -31,7 +31,8 @@ from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMM
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
                                       Waiter, declare_config, declare_thread_priority, describe, follow, run_node,
                                       take_waiting)
-from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of, states_to_msg
+from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of
+from exit_decision.ros.states_cdr import encode_states
 from exit_decision.scenario.simulation import CommandError
 from exit_decision.traffic import CavCommand
 from exit_decision.input_checks import CommandLimits, InputError
@@ -164,7 +165,7 @@ class SumoBridge(Node):
 
     def publish_state(self, result) -> None:
         self.clock_pub.publish(Clock(clock=stamp_of(result.time)))
-        self.states_pub.publish(states_to_msg(result.vehicles, episode=self.episode, step=result.step,
+        self.states_pub.publish(encode_states(result.vehicles, episode=self.episode, step=result.step,
                                               step_length=self.step_length))
         self.published_step = result.step
 

@@ -14,7 +14,7 @@ As the other nodes, it starts an episode's frames on the bridge's (or the player
 EVENT_STARTED only, takes a states message only if it can follow the current episode and step
 (``StepGate``; as an onlooker it follows any later step of the episode, so one joining
 mid-episode or falling behind draws on) and every field fits the scenario
-(``conversions.checked_states``), and otherwise rejects it whole and counts it on
+(``states_cdr.checked_states_cdr``), and otherwise rejects it whole and counts it on
 /diagnostics: a bad message changes no frame.
 """
 from __future__ import annotations
@@ -52,12 +52,13 @@ from exit_decision.ros.common import (
 )
 from exit_decision.ros.conversions import (
     MessageError,
-    checked_states,
     commands_from_msg,
     graph_from_msg,
     overrides_from_msg,
 )
+from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.step_gaps import episode_and_step
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
 from exit_decision.visualization.trace import Frame, FrameBuilder
@@ -116,27 +117,30 @@ class Visualizer(Node):
         # node's wait (common.Waiter) empties the queue of the subscription created first first
         self.events = self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
-        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS)
+        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS, raw=True)
         self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
         self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
         self.create_subscription(ShieldOverrideArray, OVERRIDES_TOPIC, self.on_overrides, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
 
-    def on_states(self, msg: VehicleStateArray) -> None:
-        if self.diagnostics.out_of_sequence(self.gate, self.events, msg.episode, msg.step, 'states'):
+    def on_states(self, raw: bytes) -> None:
+        # (episode, step) first: a message that cannot follow (a flood) costs no decoding
+        episode, step = episode_and_step(raw)
+        if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
             return
         try:
-            vehicles = checked_states(msg, self.limits)
+            states = checked_states_cdr(raw, self.limits)
         except InputError as error:
-            self.diagnostics.reject('states', f'states of step {msg.step}', str(error))
+            self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
-        self.gate.accept(msg.step)
-        frame = self.frames.add(msg.step, vehicles, overrides=self.overrides)
-        self.last = frame, msg.header.stamp
+        self.gate.accept(step)
+        vehicles = states.vehicles
+        frame = self.frames.add(step, vehicles, overrides=self.overrides)
+        self.last = frame, states.stamp
         wait = self.last_sent + 1.0 / self.max_rate - time.monotonic() if self.max_rate and vehicles else 0.0
         if wait <= 0:
-            self.send(frame, msg.header.stamp)
+            self.send(frame, states.stamp)
             return
         if self.held_back is not None:
             self.scene.observe(self.held_back[0])   # replaced unsent: its episode and collisions still count
