@@ -10,16 +10,21 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from exit_decision.input_checks import InputError
+
 
 def episode_and_step(cdr: bytes) -> tuple[int, int]:
     """(episode, step) of a serialized message that starts with a Header, then uint32 episode
     and uint32 step. CDR: 4 bytes of encapsulation (byte 1: 1 little endian, 0 big endian),
     then stamp (int32 sec, uint32 nanosec), frame_id (uint32 length with the NUL, the bytes),
-    padding to 4."""
-    order = '<' if cdr[1] & 1 else '>'
-    (length,) = struct.unpack_from(order + 'I', cdr, 12)
-    offset = 4 + (8 + 4 + length + 3) // 4 * 4
-    return struct.unpack_from(order + 'II', cdr, offset)
+    padding to 4. InputError for bytes too short to hold them."""
+    try:
+        order = '<' if cdr[1] & 1 else '>'
+        (length,) = struct.unpack_from(order + 'I', cdr, 12)
+        offset = 4 + (8 + 4 + length + 3) // 4 * 4
+        return struct.unpack_from(order + 'II', cdr, offset)
+    except (IndexError, struct.error):
+        raise InputError(f'{len(cdr)} bytes: too short for a header, an episode and a step') from None
 
 
 @dataclass

@@ -154,3 +154,14 @@ def test_malformed_cdr_states_are_refused_naming_what():
     bad.vehicles[1].vehicle_class, bad.vehicles[1].vehicle_id = 0, 'CAV_3'
     with pytest.raises(MessageError, match='appears twice'):
         decode_states(serialize_message(bad), HIGHWAY)
+    unterminated = bytearray(little)
+    unterminated[unterminated.index(b'CAV_3\0') + 5] = ord('7')   # read to its length: CAV_37
+    with pytest.raises(MessageError, match='not one NUL-terminated string'):
+        decode_states(bytes(unterminated), HIGHWAY)
+
+
+def test_a_message_too_short_for_its_header_is_an_input_error():
+    from exit_decision.input_checks import InputError
+    from exit_decision.step_gaps import episode_and_step
+    with pytest.raises(InputError, match='6 bytes: too short for a header'):
+        episode_and_step(b'\x00\x01\x00\x00\x00\x00')

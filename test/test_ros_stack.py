@@ -410,6 +410,8 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
 def bad_messages(latest: VehicleStateArray) -> list:
     """The fuzzer's findings (issue 12), aimed at what the stack is doing now: states for the
     next step with a bad field or sequence number, commands with a bad step or value."""
+    from rclpy.serialization import serialize_message
+
     from exit_decision.ros.conversions import states_to_msg
     from conftest import make_vehicle
 
@@ -425,6 +427,13 @@ def bad_messages(latest: VehicleStateArray) -> list:
     states[-1].vehicles[0].vehicle_class = 9                  # no such class
     states += [states_to_msg(vehicles, episode=episode + 1000, step=step + 1, step_length=0.1, frame_id='fuzz'),
                states_to_msg(vehicles, episode=episode, step=2**32 - 1, step_length=0.1, frame_id='fuzz')]
+    # bytes no rclpy publisher sends (the nodes take the states raw): a vehicle id without its NUL
+    # (read to its length it would be another id), and a message too short for its header
+    unterminated = bytearray(serialize_message(states_to_msg(vehicles, episode=episode, step=step - step % 5 + 10,
+                                                             step_length=0.1, frame_id='fuzz')))
+    name = vehicles[0].vehicle_id.encode()
+    unterminated[unterminated.index(name + b'\0') + len(name)] = ord('7')
+    states += [bytes(unterminated), b'\x00\x01\x00\x00\x00\x00']
     cav = next((v.vehicle_id for v in vehicles if v.controlled), 'CAV_0')
     commands = [CavCommandArray(episode=episode, step=2**32 - 1, algorithm='fuzz',
                                 commands=[CavCommand(vehicle_id=cav, acceleration=1.0)]),
@@ -472,7 +481,7 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
                 batch = bad_messages(latest[-1])
                 for _ in range(min(len(batch), int((time.monotonic() - started) * FLOOD_RATE) - sent)):
                     msg = batch[sent % len(batch)]
-                    (states if isinstance(msg, VehicleStateArray) else commands).publish(msg)
+                    (states if isinstance(msg, (VehicleStateArray, bytes)) else commands).publish(msg)
                     sent += 1
             test.executor.spin_once(timeout_sec=0.002)
         assert ended, 'the episode ends'
@@ -509,6 +518,8 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     ('sumo_bridge', {'timing': 'fast'}, "parameter timing: 'fast' is not allowed; allowed: synchronous | realtime"),
     ('sumo_bridge', {'command_timeout': 0.0}, 'parameter command_timeout: 0.0 is not allowed; allowed: a number in'),
     ('decision_node', {'mode': 3}, 'parameter mode: 3 is not allowed; allowed: AGGI | AGGP | CONI | CONP'),
+    ('decision_node', {'mode': 'XX'}, "parameter mode: 'XX' is not allowed; allowed: AGGI | AGGP | CONI | CONP"),
+    ('graph_and_decision', {'decision_node:mode': 'XX'}, "parameter mode: 'XX' is not allowed; allowed: AGGI"),
     ('graph_builder', {'thread_priority': 150}, 'parameter thread_priority: 150 is not allowed; allowed: an integer in 0..99'),
     ('player', {}, 'parameter bag_path: not given'),
     ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
@@ -574,6 +585,18 @@ def test_a_thread_priority_without_the_right_to_it_gives_one_line_and_a_failing_
         assert result.returncode == 2 and not (tmp_path / 'bag').exists(), (command, result.stderr)
         assert result.stderr.strip().splitlines() == [result.stderr.strip()] and \
             '--thread-priority 10 needs real-time scheduling rights' in result.stderr, result.stderr
+
+
+@pytest.mark.skipif(not may_run_realtime(1), reason='no right to SCHED_FIFO here')
+def test_one_process_takes_one_thread_priority_for_both_its_nodes(setup, tmp_path):
+    """graph_and_decision runs both nodes' threads under one scheduling: priorities that differ
+    between its nodes are refused in one line."""
+    log = tmp_path / 'node.log'
+    process = start_node('graph_and_decision', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
+                                                'decision_node:thread_priority': 1}, log)
+    assert process.wait(60) == 1
+    text = log.read_text()
+    assert len(text.strip().splitlines()) == 1 and 'parameter thread_priority:' in text and 'differ' in text, text
 
 
 def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup, tmp_path):

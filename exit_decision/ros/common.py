@@ -59,6 +59,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project  # noqa: E402
 from exit_decision.errors import PolicyError  # noqa: E402
+from exit_decision.input_checks import InputError  # noqa: E402
+from exit_decision.step_gaps import episode_and_step  # noqa: E402
 
 STATES_TOPIC = '/exit_decision/vehicle_states'
 GRAPH_TOPIC = '/exit_decision/traffic_graph'
@@ -195,6 +197,15 @@ class Diagnostics:
         if now >= self.quiet_until.get(key, 0.0):
             self.quiet_until[key] = now + REJECT_LOG_PERIOD
             self.node.get_logger().warning(f'rejected {what}: {reason}')
+
+    def step_of(self, raw: bytes, what: str) -> tuple[int, int] | None:
+        """(episode, step) from the front of a serialized message (``step_gaps.episode_and_step``);
+        None, rejected and counted (``rejected_<what>``), if the bytes are too short to hold them."""
+        try:
+            return episode_and_step(raw)
+        except InputError as error:
+            self.reject(what, what, str(error))
+            return None
 
     def out_of_sequence(self, gate, events, episode: int, step: int, what: str) -> bool:
         """Reject and count (``rejected_out_of_sequence_<what>``) a message whose (episode, step)
@@ -421,14 +432,14 @@ def run_node(name: str, make_node: Callable[[], Node | Sequence[Node]],
             spin(nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ConfigError, PolicyError, ParameterError) as error:   # before RuntimeError: PolicyError is one
+        print(f'[{name}] cannot start: {error}', file=sys.stderr)
+        return 1
     except RuntimeError:
         # a KeyboardInterrupt raised while rclpy's C++ converts a message comes out as
         # "RuntimeError: Unable to convert call argument": a stop all the same
         if not _STOP_SIGNALS:
             raise
-    except (ConfigError, PolicyError, ParameterError) as error:
-        print(f'[{name}] cannot start: {error}', file=sys.stderr)
-        return 1
     finally:
         for node in nodes:
             node.destroy_node()

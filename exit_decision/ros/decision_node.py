@@ -57,7 +57,6 @@ from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
-from exit_decision.step_gaps import episode_and_step
 
 if TYPE_CHECKING:
     from exit_decision.policy import PolicyController
@@ -155,6 +154,7 @@ class DecisionNode(Node):
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.policy_dir, self.modes = policy_dir, modes
         self.loaded: tuple | Exception | None = None   # what the loading thread hands over
+        self.when_loaded: list = []   # called once the policies are loaded (composed: the graph builder subscribes)
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
         threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
 
@@ -210,6 +210,8 @@ class DecisionNode(Node):
             self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
             self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
             self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+        for callback in self.when_loaded:
+            callback()
         self.get_logger().info(f'loaded {len(self.controllers)} policies from {self.policy_dir}; '
                                f'active: {self.algorithm}/{self.mode}')
 
@@ -300,7 +302,10 @@ class DecisionNode(Node):
 
     def on_states(self, raw: bytes) -> None:
         # read (episode, step) first: other steps, and whatever cannot follow (a flood), cost no decoding
-        episode, step = episode_and_step(raw)
+        key = self.diagnostics.step_of(raw, 'states')
+        if key is None:
+            return
+        episode, step = key
         if step % self.interval:
             return                                  # only decision steps are used
         if self.diagnostics.out_of_sequence(self.states_gate, self.events, episode, step, 'states'):
@@ -340,9 +345,6 @@ class DecisionNode(Node):
         """Decide the step ``key`` = (episode, step) from its graph and checked states, and
         publish the commands (then the shield's overrides), once per step."""
         if key <= self.last_decided:
-            return
-        if not self.controllers:   # composed: the graph builder is up before the policies are loaded
-            self.diagnostics.count('graphs_before_policies_loaded')
             return
         self.last_decided = key
         try:

@@ -13,19 +13,27 @@ graph builder for one's own decision maker.
 
 Parameters given with ``--ros-args -p`` reach both nodes (each takes those it declares); a
 remapping of ``__node`` would name both alike: set a node's parameter as
-``-p decision_node:mode:=CONP`` if needed.
+``-p decision_node:mode:=CONP`` if needed. The decision node's counters of its own streams
+(``skipped_*``, ``dropped_*``, ``rejected_*`` of states and graphs) are the graph builder's here:
+it alone takes the states.
 """
 from __future__ import annotations
 
-from exit_decision.ros.common import run_node
+from exit_decision.ros.common import ParameterError, run_node
 from exit_decision.ros.decision_node import DecisionNode
 from exit_decision.ros.graph_builder import GraphBuilderNode
 
 
 def make_nodes() -> list:
-    """The decision node first (its policies start loading at once), then its graph builder."""
+    """The two nodes, made decision node first (its policies start loading at once). One
+    process has one scheduling: a ``thread_priority`` that differs between them is refused."""
     decision = DecisionNode(composed=True)
-    return [GraphBuilderNode(decision), decision]
+    builder = GraphBuilderNode(decision)
+    priorities = {node.get_name(): node.get_parameter('thread_priority').value for node in (builder, decision)}
+    if len(set(priorities.values())) > 1:
+        raise ParameterError(f'parameter thread_priority: {priorities} differ; allowed: one value for both '
+                             f'nodes of the process')
+    return [builder, decision]
 
 
 def main() -> int:

@@ -24,7 +24,6 @@ from exit_decision.ros.conversions import graph_to_msg
 from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import InputError, StateLimits, StepGate
-from exit_decision.step_gaps import episode_and_step
 
 if TYPE_CHECKING:
     from exit_decision.ros.decision_node import DecisionNode
@@ -33,7 +32,9 @@ if TYPE_CHECKING:
 class GraphBuilderNode(Node):
     """``decision``: the decision node composed in the same process (``graph_and_decision``),
     or None. It gets the episode events and each graph with its checked states directly, and
-    decides before the graph is published (for the recorder and the visualizer)."""
+    decides before the graph is published (for the recorder and the visualizer). Composed, the
+    graph builder subscribes once the decision node has loaded its policies, as the decision
+    node alone does: a bridge waiting for its listeners (any timing) starts only then."""
 
     def __init__(self, decision: DecisionNode | None = None):
         super().__init__('graph_builder')
@@ -49,6 +50,12 @@ class GraphBuilderNode(Node):
         self.feature_set = config.graph.feature_set
         self.diagnostics = Diagnostics(self, 'graph_builder')
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
+        if decision is None:
+            self.subscribe()
+        else:
+            decision.when_loaded.append(self.subscribe)
+
+    def subscribe(self) -> None:
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (common.Waiter) empties the queue of the subscription created first first
         self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
@@ -63,7 +70,10 @@ class GraphBuilderNode(Node):
 
     def on_states(self, raw: bytes) -> None:
         # (episode, step) first: other steps, and a message that cannot follow (a flood), cost no decoding
-        episode, step = episode_and_step(raw)
+        key = self.diagnostics.step_of(raw, 'states')
+        if key is None:
+            return
+        episode, step = key
         if step % self.interval:
             return
         if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):

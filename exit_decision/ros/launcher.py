@@ -10,6 +10,7 @@ Every process inherits the loopback default that importing ``common`` sets.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -24,6 +25,7 @@ from rcl_interfaces.srv import SetParameters
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
 from exit_decision.ros.stack_nodes import BRIDGE, plan
+from exit_decision.input_checks import InputError
 from exit_decision.step_gaps import episode_and_step
 
 
@@ -126,7 +128,8 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
             run.episodes.append(metrics_from_event(msg))
 
     def on_states(raw: bytes) -> None:   # the progress only: (episode, step) read without decoding
-        state['episode'], state['step'] = episode_and_step(raw)
+        with contextlib.suppress(InputError):   # a message too short for them is no progress
+            state['episode'], state['step'] = episode_and_step(raw)
 
     node.create_subscription(EpisodeEvent, EPISODE_TOPIC, on_event, EVENT_QOS)
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)

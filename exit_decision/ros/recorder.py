@@ -28,7 +28,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from exit_decision.ros.bags import DEFAULT_TOPICS, KNOWN_TOPICS, message_class, topic_qos, typestore
 from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
                                       ParameterError, declare, declare_config, describe, run_node)
-from exit_decision.step_gaps import StepGaps, episode_and_step
+from exit_decision.step_gaps import StepGaps
 
 FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only
 
@@ -98,7 +98,8 @@ class Recorder(Node):
         self.diagnostics.count('messages')
         gaps = self.gaps.get(topic)
         if gaps is not None:
-            missing = gaps.see(*episode_and_step(raw))
+            key = self.diagnostics.step_of(raw, f'headers_{topic.rsplit("/", 1)[-1]}')   # recorded all the same
+            missing = gaps.see(*key) if key is not None else 0
             if missing:
                 name = topic.rsplit('/', 1)[-1]
                 self.diagnostics.count(f'gaps_{name}')

@@ -88,7 +88,7 @@ def decode_states(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
     are no such message."""
     try:
         return _decode(cdr, highway_edges)
-    except (struct.error, IndexError, UnicodeDecodeError, KeyError) as error:
+    except (struct.error, IndexError, UnicodeDecodeError) as error:
         raise MessageError(f'vehicle states: not a VehicleStateArray in CDR ({error})') from None
 
 
@@ -109,33 +109,35 @@ def _decode(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
     offset += 12
     vehicles = []
     for _ in range(count):
+        # each string: uint32 length n with the NUL, n bytes; the NUL's index kept to check it
         offset += -offset % 4
         (size,) = uint32(cdr, offset)
-        vehicle_id = cdr[offset + 4:offset + 3 + size].decode()
+        id_end = offset + 3 + size
+        vehicle_id = cdr[offset + 4:id_end].decode()
         offset += 4 + size
         code, lane = class_lane(cdr, offset)
         offset += 2
         offset += -offset % 4
         (size,) = uint32(cdr, offset)
-        edge = cdr[offset + 4:offset + 3 + size].decode()
+        edge_end = offset + 3 + size
+        edge = cdr[offset + 4:edge_end].decode()
         offset += 4 + size
         offset += -(offset - 4) % 8
         *numbers, intention = numbers_intention(cdr, offset)
         offset += 49
         offset += -offset % 4
-        (route_size,) = uint32(cdr, offset)
-        route_target = cdr[offset + 4:offset + 3 + route_size].decode()
-        offset += 4 + route_size
-        controlled = cdr[offset] != 0
+        (size,) = uint32(cdr, offset)
+        route_end = offset + 3 + size
+        route_target = cdr[offset + 4:route_end].decode()
+        offset += 4 + size
+        controlled = cdr[offset] != 0   # IndexError (so MessageError) if the bytes end before
         offset += 1
+        if cdr[id_end] or cdr[edge_end] or cdr[route_end] or '\0' in vehicle_id + edge + route_target:
+            raise MessageError(f'vehicle {vehicle_id!r}: a string that is not one NUL-terminated string')
         if code not in CLASS_NAMES or not vehicle_id or not all(map(math.isfinite, numbers)):
             check_vehicle_fields(vehicle_id, code, numbers)   # says which
-        if not size or not route_size:
-            raise MessageError(f'vehicle {vehicle_id!r}: a string without its length')
         vehicles.append(VehicleState(vehicle_id, CLASS_NAMES[code], lane, edge, *numbers, intention, route_target,
                                      controlled, edge in highway_edges))
-    if offset > len(cdr):
-        raise MessageError(f'vehicle states: {len(cdr)} bytes, cut short of the {offset} its fields take')
     check_unique_ids(vehicles)
     return DecodedStates(episode, step, step_length, Time(sec=sec, nanosec=nanosec), vehicles)
 

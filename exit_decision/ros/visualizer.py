@@ -58,7 +58,6 @@ from exit_decision.ros.conversions import (
 )
 from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.step_gaps import episode_and_step
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
 from exit_decision.visualization.trace import Frame, FrameBuilder
@@ -126,7 +125,10 @@ class Visualizer(Node):
 
     def on_states(self, raw: bytes) -> None:
         # (episode, step) first: a message that cannot follow (a flood) costs no decoding
-        episode, step = episode_and_step(raw)
+        key = self.diagnostics.step_of(raw, 'states')
+        if key is None:
+            return
+        episode, step = key
         if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
             return
         try:
