@@ -109,7 +109,9 @@ def _decode(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
     offset += 12
     vehicles = []
     for _ in range(count):
-        # each string: uint32 length n with the NUL, n bytes; the NUL's index kept to check it
+        # each string: uint32 length n with the NUL, n bytes; the NUL's index kept to check it.
+        # Inline on purpose: with a function per string and per alignment the decode took 119 us
+        # a message instead of 67-71 (the same 801 states, back to back)
         offset += -offset % 4
         (size,) = uint32(cdr, offset)
         id_end = offset + 3 + size
