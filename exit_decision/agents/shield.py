@@ -94,13 +94,11 @@ class Shield:
         speed_after = np.maximum(v + a_t, 0.0)
         return travel, speed_after ** 2 / (2 * self.config.ego_max_braking)
 
-    def stop_capable(self, vehicle: VehicleState, gap: float, leader_speed: float,
-                     motion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """Per acceleration of the grid: can the CAV still stop behind a leader braking at its
-        maximum, after holding that acceleration for one decision interval? ``motion``: its
-        ``ego_motion``, if already computed."""
+    def stop_capable(self, motion: tuple[np.ndarray, np.ndarray], gap: float, leader_speed: float) -> np.ndarray:
+        """Per acceleration of the grid: can the CAV (its ``ego_motion``) still stop behind a
+        leader braking at its maximum, after holding that acceleration for one decision interval?"""
         c, t = self.config, self.horizon
-        travel, braking_distance = motion if motion is not None else self.ego_motion(vehicle.speed)
+        travel, braking_distance = motion
         b = c.leader_max_braking
         leader_travel = leader_speed * leader_speed / (2 * b) if leader_speed < b * t else \
             leader_speed * t - 0.5 * b * t * t
@@ -131,7 +129,7 @@ class Shield:
             if c.stop_capable:
                 ahead = self.leader(vehicle, lane, snapshot)
                 if ahead.leader is not None:
-                    ok &= self.stop_capable(vehicle, ahead.leader_gap, ahead.leader.speed, motion)
+                    ok &= self.stop_capable(motion, ahead.leader_gap, ahead.leader.speed)
             if c.human_follower_braking and around.follower is not None \
                     and not around.follower.controlled and around.follower_gap < c.human_follower_distance:
                 ok &= self.not_hard_braking
