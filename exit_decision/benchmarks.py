@@ -219,13 +219,10 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     elapsed, measured = window[-1] - window[0], len(window) - 1
     answered_steps = [key for key in commands_at if key in states_at and window[0] <= states_at[key] <= window[-1]]
 
-    def milliseconds(later: dict, earlier: dict) -> np.ndarray:
-        return np.array([(later[key] - earlier[key]) * 1000 for key in answered_steps])
-
     def spread(values: np.ndarray) -> str:
         return f'median {np.median(values):.2f} ms, p99 {np.percentile(values, 99):.2f} ms'
 
-    latency = milliseconds(commands_at, states_at)
+    latency = np.array([(commands_at[key] - states_at[key]) * 1000 for key in answered_steps])
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     cores = len(os.sched_getaffinity(0))
     return '\n'.join([
