@@ -60,6 +60,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project  # noqa: E402
 from exit_decision.errors import PolicyError  # noqa: E402
 from exit_decision.input_checks import InputError  # noqa: E402
+from exit_decision.ros.states_cdr import checked_states_cdr  # noqa: E402
 from exit_decision.step_gaps import episode_and_step  # noqa: E402
 
 STATES_TOPIC = '/exit_decision/vehicle_states'
@@ -218,6 +219,24 @@ class Diagnostics:
         if reason:
             self.reject(f'out_of_sequence_{what}', what, reason)
         return reason is not None
+
+    def take_states(self, raw: bytes, gate, events, limits, every: int = 1):
+        """The vehicle states in ``raw`` (a ``states_cdr.DecodedStates``), or None when they are
+        not taken: a step that is not a multiple of ``every`` (not counted), and, rejected and
+        counted, bytes too short for (episode, step), a step ``gate`` refuses (``out_of_sequence``)
+        and a field that does not fit the scenario's ``limits``. Read in that order, so a flood
+        of what cannot follow costs no decoding. The caller accepts the step on its gate."""
+        key = self.step_of(raw, 'states')
+        if key is None or key[1] % every:
+            return None
+        episode, step = key
+        if self.out_of_sequence(gate, events, episode, step, 'states'):
+            return None
+        try:
+            return checked_states_cdr(raw, limits)
+        except InputError as error:
+            self.reject('states', f'states of step {step}', str(error))
+            return None
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos: QoSProfile, raw: bool = False):
         """``node.create_subscription`` that also counts messages lost before the node took

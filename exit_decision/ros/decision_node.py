@@ -53,7 +53,6 @@ from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPI
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
                                       declare_thread_priority, describe, run_node)
 from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, overrides_to_msg
-from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -301,20 +300,10 @@ class DecisionNode(Node):
             self.last_decided = (msg.episode, -1)
 
     def on_states(self, raw: bytes) -> None:
-        # read (episode, step) first: other steps, and whatever cannot follow (a flood), cost no decoding
-        key = self.diagnostics.step_of(raw, 'states')
-        if key is None:
-            return
-        episode, step = key
-        if step % self.interval:
-            return                                  # only decision steps are used
-        if self.diagnostics.out_of_sequence(self.states_gate, self.events, episode, step, 'states'):
-            return
-        try:
-            vehicles = checked_states_cdr(raw, self.limits).vehicles
-        except InputError as error:
-            self.diagnostics.reject('states', f'states of step {step}', str(error))
-            return
+        states = self.diagnostics.take_states(raw, self.states_gate, self.events, self.limits, every=self.interval)
+        if states is None:
+            return                                  # only decision steps are used, checked
+        episode, step, vehicles = states.episode, states.step, states.vehicles
         self.diagnostics.count('skipped_states', self.states_gate.accept(step) // self.interval)
         self.states[(episode, step)] = vehicles
         self.try_decide((episode, step))

@@ -21,9 +21,8 @@ from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputErro
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
                                       Diagnostics, declare_config, declare_thread_priority, run_node)
 from exit_decision.ros.conversions import graph_to_msg
-from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.input_checks import InputError, StateLimits, StepGate
+from exit_decision.input_checks import StateLimits, StepGate
 
 if TYPE_CHECKING:
     from exit_decision.ros.decision_node import DecisionNode
@@ -69,19 +68,13 @@ class GraphBuilderNode(Node):
             self.decision.on_episode(msg)
 
     def on_states(self, raw: bytes) -> None:
-        # (episode, step) first: other steps, and a message that cannot follow (a flood), cost no decoding
-        key = self.diagnostics.step_of(raw, 'states')
-        if key is None:
+        states = self.diagnostics.take_states(raw, self.gate, self.events, self.limits, every=self.interval)
+        if states is None:
             return
-        episode, step = key
-        if step % self.interval:
-            return
-        if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
-            return
+        episode, step = states.episode, states.step
         try:
-            states = checked_states_cdr(raw, self.limits)
             graph = self.builder.build(states.vehicles)
-        except (InputError, GraphInputError, GraphCapacityError) as error:
+        except (GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
         self.diagnostics.count('skipped_decision_steps', self.gate.accept(step) // self.interval)

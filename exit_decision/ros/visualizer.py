@@ -32,7 +32,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
-from exit_decision.input_checks import InputError, StateLimits, StepGate
+from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.ros.common import (
     COMMANDS_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -56,7 +56,6 @@ from exit_decision.ros.conversions import (
     graph_from_msg,
     overrides_from_msg,
 )
-from exit_decision.ros.states_cdr import checked_states_cdr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
@@ -124,20 +123,11 @@ class Visualizer(Node):
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, raw: bytes) -> None:
-        # (episode, step) first: a message that cannot follow (a flood) costs no decoding
-        key = self.diagnostics.step_of(raw, 'states')
-        if key is None:
+        states = self.diagnostics.take_states(raw, self.gate, self.events, self.limits)
+        if states is None:
             return
-        episode, step = key
-        if self.diagnostics.out_of_sequence(self.gate, self.events, episode, step, 'states'):
-            return
-        try:
-            states = checked_states_cdr(raw, self.limits)
-        except InputError as error:
-            self.diagnostics.reject('states', f'states of step {step}', str(error))
-            return
+        step, vehicles = states.step, states.vehicles
         self.gate.accept(step)
-        vehicles = states.vehicles
         frame = self.frames.add(step, vehicles, overrides=self.overrides)
         self.last = frame, states.stamp
         wait = self.last_sent + 1.0 / self.max_rate - time.monotonic() if self.max_rate and vehicles else 0.0
