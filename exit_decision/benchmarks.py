@@ -1,6 +1,7 @@
 """Benchmark commands: figures printed, never asserted in tests."""
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from pathlib import Path
@@ -122,7 +123,8 @@ def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
     return '\n'.join(lines)
 
 
-def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_priority: int = 0) -> str:
+def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_priority: int = 0,
+              cpu_split: bool = True) -> str:
     """The default stack (``stack_nodes.plan``: recorder and visualizer included), each row of
     the table its own process, synchronous mode, episodes until stopped.
 
@@ -137,7 +139,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     machine hide) and its resident memory at the first command and after the steps.
     ``thread_priority``: the nodes on the decision path run real-time at it, and so does the
     observer once they are started (its receive stamps must not lag theirs), until it returns
-    (0: normal scheduling)."""
+    (0: normal scheduling). ``cpu_split``: the stack's default, the decision path and the
+    onlookers on cores of their own; the observer, an onlooker, is on the onlookers' cores once
+    the nodes are started, until it returns."""
     import tempfile
 
     import numpy as np
@@ -145,10 +149,10 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
-    from exit_decision.ros import realtime
+    from exit_decision.ros import cpu_affinity, realtime
     from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.launcher import StackLauncher
-    from exit_decision.ros.stack_nodes import BRIDGE, plan, process_of
+    from exit_decision.ros.stack_nodes import BRIDGE, cores, plan, process_of
     from exit_decision.step_gaps import episode_and_step
 
     # (episode, step) -> when the observer's middleware received it (its receive stamp, so the
@@ -175,9 +179,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     answered = {'at': 0.0}
     cpu_at_first_command: dict[str, float] = {}
     memory_at_first_command: dict[str, float] = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        started = plan({'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
-                        'policy_dir': policy_dir, 'thread_priority': thread_priority}, extra_listeners=1)
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as onlooking:
+        arguments = {'episodes': 0, 'seed': seed, 'bag_path': Path(tmp) / 'bag', 'config_dir': config_dir,
+                     'policy_dir': policy_dir, 'thread_priority': thread_priority, 'cpu_split': cpu_split}
+        started = plan(arguments, extra_listeners=1)
+        split = cores(arguments)
         names = [name for name, _ in started]
         deciding = process_of('decision_node', names)   # started last, timed
         launcher = StackLauncher(dict(started), Path(tmp) / 'logs')
@@ -192,6 +198,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
                 probe.spin_once(0.1)
             decision_start = time.time()
             launcher.start(deciding)
+            onlooking.enter_context(cpu_affinity.pinned(split and split[1]))   # every node started: see run_stack
             if thread_priority:   # the observer too, its children started: its receive stamps must not lag theirs
                 realtime.apply(thread_priority)
             pending = None
@@ -224,10 +231,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
 
     latency = np.array([(commands_at[key] - states_at[key]) * 1000 for key in answered_steps])
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
-    cores = len(os.sched_getaffinity(0))
+    core_count = len(os.sched_getaffinity(0))
     return '\n'.join([
         (f'ROS 2 stack, {len(names)} processes ({", ".join(names)}), synchronous, '
          + (f'decision path at real-time priority {thread_priority}, ' if thread_priority else 'normal scheduling, ')
+         + (f'decision path on cores {split[0]}, onlookers on {split[1]}, ' if split else 'no core split, ')
          + f'{measured} steps ({len(latency)} decisions) from the first command'),
         (f'  decision node start: parameters answered after {answer}, '
          f'the bridge\'s first step after {min(states_at.values()) - decision_start:.2f} s, '
@@ -236,8 +244,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         f'  states -> commands latency: {spread(latency)}',
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
-        f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {cores * 1000 * elapsed / measured:.2f} '
-        f'that {cores} cores have per step at this rate)',
+        f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {core_count * 1000 * elapsed / measured:.2f} '
+        f'that {core_count} cores have per step at this rate)',
         '  resident memory [MB] at the first command -> after the steps: ' + ', '.join(
             f'{name} {memory_at_first_command[name]:.0f} -> {memory_at_end[name]:.0f}'
             for name in memory_at_end if name in memory_at_first_command)])

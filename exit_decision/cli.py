@@ -35,6 +35,13 @@ def _thread_priority(parser: argparse.ArgumentParser, what: str = '') -> None:
                         help=what + DESCRIPTION)
 
 
+def _cpu_split(parser: argparse.ArgumentParser, what: str = '') -> None:
+    parser.add_argument('--no-cpu-split', action='store_true',
+                        help=what + 'every node on every core, instead of the default: the decision path (bridge, graph '
+                                    'builder, decision node) on the first half of the cores, the recorder and the '
+                                    'visualizer on the rest')
+
+
 def _check_thread_priority(priority: int) -> None:
     """Before anything starts: a priority this user may not take is one line, not a node dying."""
     from exit_decision.ros.realtime import refusal
@@ -226,7 +233,8 @@ def cmd_stack(args: argparse.Namespace) -> int:
                     bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
                     switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
-                    visualizer=not args.no_visualizer, thread_priority=args.thread_priority)
+                    visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
+                    cpu_split=not args.no_cpu_split)
     if run.mode_switch:
         print(run.mode_switch)
     if run.episodes:
@@ -346,7 +354,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.what in ('ros', 'all'):
         from exit_decision.benchmarks import bench_ros
         print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed,
-                        args.thread_priority))
+                        args.thread_priority, cpu_split=not args.no_cpu_split))
     return 0
 
 
@@ -449,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     _thread_priority(stack)
+    _cpu_split(stack)
     stack.set_defaults(func=cmd_stack)
 
     replay = commands.add_parser('replay', help='re-run the policy on a bag and compare with its commands')
@@ -582,6 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument('--episodes', type=int, default=2, help='episodes per measurement (sweep: seeds per cell)')
     bench.add_argument('--seed', type=int, default=0)
     _thread_priority(bench, 'ros: the benchmark\'s observer too, once the nodes are started; ')
+    _cpu_split(bench, 'ros: ')
     bench.set_defaults(func=cmd_bench)
     return parser
 

@@ -521,6 +521,9 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     ('decision_node', {'mode': 'XX'}, "parameter mode: 'XX' is not allowed; allowed: AGGI | AGGP | CONI | CONP"),
     ('graph_and_decision', {'decision_node:mode': 'XX'}, "parameter mode: 'XX' is not allowed; allowed: AGGI"),
     ('graph_builder', {'thread_priority': 150}, 'parameter thread_priority: 150 is not allowed; allowed: an integer in 0..99'),
+    ('visualizer', {'cpu_affinity': [4096]}, 'parameter cpu_affinity: [4096] is not allowed; allowed: a non-empty list '
+                                             'of the cores this process may use'),
+    ('sumo_bridge', {'cpu_affinity': 0}, 'parameter cpu_affinity: 0 is not allowed; allowed: a non-empty list'),
     ('player', {}, 'parameter bag_path: not given'),
     ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
     ('player', {'bag_path': 'CORRUPT'}, 'not a readable bag'),
@@ -599,6 +602,36 @@ def test_one_process_takes_one_thread_priority_for_both_its_nodes(setup, tmp_pat
     assert len(text.strip().splitlines()) == 1 and 'parameter thread_priority:' in text and 'differ' in text, text
 
 
+def cores_of_every_thread(pid: int) -> dict[int, str]:
+    return {int(tid): next(line.split()[1] for line in open(f'/proc/{pid}/task/{tid}/status')
+                           if line.startswith('Cpus_allowed_list'))
+            for tid in os.listdir(f'/proc/{pid}/task')}
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason='one core: nothing to pin apart')
+def test_cpu_affinity_pins_every_thread_of_the_decision_node(setup, tmp_path):
+    """Those the middleware starts once its policies are loaded (its subscriptions) too; and the
+    composed process refuses cores that differ between its two nodes, in one line."""
+    last = max(os.sched_getaffinity(0))
+    process = start_node('decision_node', {'config_dir': str(setup['config_dir']), 'policy_dir': str(setup['policies']),
+                                           'cpu_affinity': [last]}, tmp_path / 'node.log')
+    test = ProbeNode('affinity_test')
+    try:
+        assert test.spin_until(lambda: test.node.count_publishers(COMMANDS_TOPIC) > 0, 60), 'policies loaded'
+        cores = cores_of_every_thread(process.pid)
+        assert len(cores) > 3 and set(cores.values()) == {str(last)}, cores
+        assert list(get_parameters(test, 'decision_node', ['cpu_affinity'])[0]) == [last]
+    finally:
+        test.close()
+        stop(process)
+    log = tmp_path / 'composed.log'
+    composed = start_node('graph_and_decision', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
+                                                 'decision_node:cpu_affinity': [last]}, log)
+    assert composed.wait(60) == 1
+    text = log.read_text()
+    assert len(text.strip().splitlines()) == 1 and 'parameter cpu_affinity:' in text and 'differ' in text, text
+
+
 def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup, tmp_path):
     """Those the middleware starts once its policies are loaded (its subscriptions) too."""
     if not may_run_realtime(10):
@@ -620,7 +653,7 @@ def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup,
     ('sumo_bridge', {'startup_timeout': 600.0, 'wait_for_subscribers': 5},
      {'seed': 7, 'startup_timeout': 1.0, 'wait_for_subscribers': 0, 'timing': 'realtime'},
      {'command_timeout': 2.5, 'realtime_factor': 4.0, 'episodes': 3}),
-    ('visualizer', {}, {'config_dir': '/tmp'}, {'max_rate': 5.0}),
+    ('visualizer', {}, {'config_dir': '/tmp', 'cpu_affinity': [0]}, {'max_rate': 5.0}),
     ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}),
     ('graph_builder', {}, {'config_dir': '/tmp', 'thread_priority': 5}, {}),
     ('decision_node', {'policy_dir': 'POLICIES'},
@@ -797,8 +830,11 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
     """The benchmark command is what the speed targets are measured with: it runs and says
     what it measured (a short run; its figures are not judged here)."""
     from exit_decision.benchmarks import bench_ros
+    from exit_decision.ros import cpu_affinity
     text = bench_ros('', '', 100, 0)
-    assert 'normal scheduling, 100 steps' in text, text
+    split = cpu_affinity.split(cpu_affinity.usable())
+    where = f'decision path on cores {split[0]}, onlookers on {split[1]}, ' if split else 'no core split, '
+    assert f'normal scheduling, {where}100 steps' in text, text
     for figure in ('real-time factor', 'states -> commands latency: median', 'CPU per step [ms]: ',
                    'resident memory [MB] at the first command -> after the steps: '):
         assert figure in text, (figure, text)

@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 
-from exit_decision.ros import realtime
+from exit_decision.ros import cpu_affinity, realtime
 from exit_decision.ros.dds_defaults import apply_dds_defaults
 
 # DDS on loopback and our Fast DDS profile unless the user chose otherwise (dds_defaults), set
@@ -162,6 +162,23 @@ def declare_thread_priority(node: Node) -> int:
         except realtime.RealtimeRefused as refused:
             raise ParameterError(f'parameter thread_priority: {refused}') from None
     return priority
+
+
+def declare_cpu_affinity(node: Node) -> list[int]:
+    """Declare the read-only ``cpu_affinity`` of a node (default: every core the process may use
+    at start, so ``ros2 param get`` tells where it runs) and pin every thread of the process to
+    those cores: its own, the middleware's, and those it starts later. The stack gives the
+    decision path and the onlookers cores of their own (``cpu_split``; ``ros/cpu_affinity.py``
+    says why)."""
+    cores = declare(node, 'cpu_affinity', cpu_affinity.AT_START, describe(
+        cpu_affinity.DESCRIPTION, read_only=True,
+        constraints=f'a non-empty list of the cores this process may use, {cpu_affinity.AT_START}'))
+    reason = cpu_affinity.refusal(cores)
+    if reason:
+        raise ParameterError(f'parameter cpu_affinity: {reason}')
+    if sorted(set(cores)) != cpu_affinity.usable():
+        cpu_affinity.pin(cores)
+    return list(cores)
 
 
 def declare_config(node: Node) -> ProjectConfig:

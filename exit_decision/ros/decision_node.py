@@ -51,7 +51,7 @@ from exit_decision.policy_names import CONDITIONED_SUFFIX
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
-                                      declare_thread_priority, describe, run_node)
+                                      declare_cpu_affinity, declare_thread_priority, describe, run_node)
 from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
@@ -81,6 +81,7 @@ class DecisionNode(Node):
         self.composed = composed
         config = declare_config(self)
         declare_thread_priority(self)
+        declare_cpu_affinity(self)
         def p(name, default, descriptor):
             return declare(self, name, default, descriptor)
         policy_dir = Path(p('policy_dir', '', describe(

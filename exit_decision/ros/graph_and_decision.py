@@ -26,13 +26,16 @@ from exit_decision.ros.graph_builder import GraphBuilderNode
 
 def make_nodes() -> list:
     """The two nodes, made decision node first (its policies start loading at once). One
-    process has one scheduling: a ``thread_priority`` that differs between them is refused."""
+    process has one scheduling: a ``thread_priority`` or ``cpu_affinity`` that differs between
+    them is refused."""
     decision = DecisionNode(composed=True)
     builder = GraphBuilderNode(decision)
-    priorities = {node.get_name(): node.get_parameter('thread_priority').value for node in (builder, decision)}
-    if len(set(priorities.values())) > 1:
-        raise ParameterError(f'parameter thread_priority: {priorities} differ; allowed: one value for both '
-                             f'nodes of the process')
+    for name in ('thread_priority', 'cpu_affinity'):
+        values = {node.get_name(): node.get_parameter(name).value for node in (builder, decision)}
+        values = {node: value if isinstance(value, int) else list(value) for node, value in values.items()}
+        if len({str(value) for value in values.values()}) > 1:
+            raise ParameterError(f'parameter {name}: {values} differ; allowed: one value for both nodes of the '
+                                 f'process')
     return [builder, decision]
 
 

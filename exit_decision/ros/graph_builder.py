@@ -19,7 +19,8 @@ from rclpy.node import Node
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, declare_thread_priority, run_node)
+                                      Diagnostics, declare_config, declare_cpu_affinity, declare_thread_priority,
+                                      run_node)
 from exit_decision.ros.conversions import graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import StateLimits, StepGate
@@ -40,6 +41,7 @@ class GraphBuilderNode(Node):
         self.decision = decision
         config = declare_config(self)
         declare_thread_priority(self)
+        declare_cpu_affinity(self)
         road = config.scenario.road
         geometry = RoadGeometry.of(road)
         self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)

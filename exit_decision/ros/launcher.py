@@ -24,7 +24,8 @@ from rcl_interfaces.srv import SetParameters
 
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.conversions import metrics_from_event
-from exit_decision.ros.stack_nodes import BRIDGE, plan
+from exit_decision.ros.cpu_affinity import pinned
+from exit_decision.ros.stack_nodes import BRIDGE, cores, plan
 from exit_decision.input_checks import InputError
 from exit_decision.step_gaps import episode_and_step
 
@@ -98,19 +99,23 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
               timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False,
-              thread_priority: int = 0) -> StackRun:
+              thread_priority: int = 0, cpu_split: bool = True) -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
     of the first episode (through the parameter service); ``modes``: the modes whose policies
     the decision node loads (empty: every mode); ``visualizer``: also publish the
     scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock;
-    ``thread_priority``: real-time priority of the nodes on the decision path (0: normal)."""
+    ``thread_priority``: real-time priority of the nodes on the decision path (0: normal);
+    ``cpu_split``: the decision path and the onlookers (this launcher's helper node among them)
+    on cores of their own."""
     if bag_path.exists():
         raise FileExistsError(f'{bag_path}: the bag directory exists already')
+    arguments = {'mode': mode, 'modes': list(modes), 'algorithm': algorithm, 'episodes': episodes, 'seed': seed,
+                 'timing': timing, 'bag_path': bag_path, 'visualizer': visualizer, 'use_sim_time': use_sim_time,
+                 'config_dir': config_dir, 'policy_dir': policy_dir, 'thread_priority': thread_priority,
+                 'cpu_split': cpu_split}
     # this launcher's helper node listens to the states too: the bridge waits for it as well
-    started = plan({'mode': mode, 'modes': list(modes), 'algorithm': algorithm, 'episodes': episodes, 'seed': seed,
-                    'timing': timing, 'bag_path': bag_path, 'visualizer': visualizer, 'use_sim_time': use_sim_time,
-                    'config_dir': config_dir, 'policy_dir': policy_dir, 'thread_priority': thread_priority},
-                   extra_listeners=1)
+    started = plan(arguments, extra_listeners=1)
+    split = cores(arguments)
     parameters = dict(started)
     for name, values in (extra or {}).items():
         parameters[name].update(values)
@@ -121,6 +126,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     probe = ProbeNode('stack_launcher')
     node = probe.node
     state = {'step': -1, 'episode': -1, 'ended': 0}
+    onlooking = contextlib.ExitStack()
 
     def on_event(msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_ENDED:
@@ -146,6 +152,8 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
             probe.spin_once(0.2)
         launcher.start(BRIDGE)
+        # once every node is started: a node may only be pinned within the cores of whoever starts it
+        onlooking.enter_context(pinned(split and split[1]))
         switched = switch_to is None
         deadline = time.monotonic() + timeout
         while launcher.processes[BRIDGE].poll() is None:
@@ -165,6 +173,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     finally:
         run.return_codes = launcher.stop()
         probe.close()
+        onlooking.close()
     return run
 
 

@@ -7,9 +7,11 @@ started later, which inherit it (docs/design.md, "ROS 2 -> Speed", says why and 
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 
 
 #: what the parameter (and launch argument, and command-line option) allows, and says
@@ -23,12 +25,15 @@ class RealtimeRefused(PermissionError):
     """This process may not use real-time scheduling; the text says why and how to allow it."""
 
 
-def _all_threads(policy: int, priority: int) -> None:
+def each_thread(apply: Callable[[int], None]) -> None:
+    """``apply(thread id)`` for every thread of this process (one that ends meanwhile is skipped)."""
     for thread in os.listdir('/proc/self/task'):
-        try:
-            os.sched_setscheduler(int(thread), policy, os.sched_param(priority))
-        except ProcessLookupError:   # it ended meanwhile
-            pass
+        with contextlib.suppress(ProcessLookupError):
+            apply(int(thread))
+
+
+def _all_threads(policy: int, priority: int) -> None:
+    each_thread(lambda thread: os.sched_setscheduler(thread, policy, os.sched_param(priority)))
 
 
 def apply(priority: int) -> None:

@@ -27,7 +27,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 
 from exit_decision.ros.bags import DEFAULT_TOPICS, KNOWN_TOPICS, message_class, topic_qos, typestore
 from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
-                                      ParameterError, declare, declare_config, describe, run_node)
+                                      ParameterError, declare, declare_config, declare_cpu_affinity,
+                                      describe, run_node)
 from exit_decision.step_gaps import StepGaps
 
 FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only
@@ -46,6 +47,7 @@ class Recorder(Node):
     def __init__(self):
         super().__init__('recorder')
         config = declare_config(self)
+        declare_cpu_affinity(self)
         default_path = f'bags/exit_decision_{datetime.now():%Y%m%d_%H%M%S}'
         self.path = Path(declare(self, 'bag_path', default_path, describe(
             'directory of the bag to write', read_only=True, constraints='a directory that does not exist yet')))

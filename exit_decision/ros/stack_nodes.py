@@ -3,15 +3,17 @@
 
 Free of rclpy and of `launch`, so the launch file, the launcher and the tests read the same
 rows on any machine. Each launch argument is passed, as the parameter of the same name, to the
-nodes that list it; an empty value leaves the node's own default. The bridge comes last and
-waits until every other node of the plan that listens to the vehicle states is there.
+nodes that list it; an empty value leaves the node's own default. ``cpu_split`` is no node's
+parameter: it sets each node's ``cpu_affinity``, the decision path's cores or the onlookers'
+(``ros/cpu_affinity.py``). The bridge comes last and waits until every other node of the plan
+that listens to the vehicle states is there.
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from exit_decision.ros import realtime
+from exit_decision.ros import cpu_affinity, realtime
 
 BRIDGE = 'sumo_bridge'
 
@@ -30,6 +32,7 @@ class StackNode:
     listens_to_states: bool         # subscribes to the vehicle states: the bridge waits for it
     enabled_by: str = ''            # a true/false argument that leaves it out when false
     composed: tuple[str, ...] = ()  # the nodes it runs in one process; empty: one, named as the executable
+    decision_path: bool = False     # on the way from states to commands (else an onlooker): its cores (cpu_split)
 
     @property
     def node_names(self) -> tuple[str, ...]:
@@ -50,6 +53,7 @@ ARGUMENTS: dict[str, Argument] = {
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
     'thread_priority': Argument('0', realtime.DESCRIPTION, int),
+    'cpu_split': Argument('true', cpu_affinity.SPLIT_DESCRIPTION, bool),
     'config_dir': Argument('', 'directory with the YAML config; empty: the installed share/exit_decision/config'),
     'policy_dir': Argument('', 'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies'),
 }
@@ -60,10 +64,10 @@ NODES: tuple[StackNode, ...] = (
     # graph builder listens to the states and hands the decision node its graphs
     StackNode('graph_and_decision', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
                                      'thread_priority'), listens_to_states=True,
-              composed=('graph_builder', 'decision_node')),
+              composed=('graph_builder', 'decision_node'), decision_path=True),
     StackNode('visualizer', ('config_dir', 'use_sim_time'), listens_to_states=True, enabled_by='visualizer'),
     StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time', 'thread_priority'),
-              listens_to_states=False),
+              listens_to_states=False, decision_path=True),
 )
 
 _BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
@@ -90,23 +94,39 @@ def process_of(node_name: str, executables) -> str:
     return next(executable for executable in executables if node_name in NODE_NAMES[executable])
 
 
-def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[str, dict[str, object]]]:
-    """(executable, parameters) of each node to start, in order, the bridge last, for these
-    argument values (text as `ros2 launch` gives it, or Python values; missing: the default).
-    ``extra_listeners``: state subscribers outside the table the bridge waits for too (the
-    launcher's own helper node)."""
+def _texts(given: Mapping[str, object]) -> dict[str, str]:
+    """Every argument's text: the given ones (text, or Python values), the defaults for the rest."""
     unknown = sorted(set(given) - set(ARGUMENTS))
     if unknown:
         raise ValueError(f'unknown argument(s) {", ".join(unknown)}; known: {", ".join(ARGUMENTS)}')
     text = {name: argument.default for name, argument in ARGUMENTS.items()}
     text.update({name: str(value).lower() if isinstance(value, bool) else ','.join(value) if isinstance(value, list)
                  else str(value) for name, value in given.items()})
+    return text
+
+
+def cores(given: Mapping[str, object]) -> tuple[list[int], list[int]] | None:
+    """(the decision path's cores, the onlookers' cores) for these argument values, from the
+    cores this process may use; None when the nodes are not split (``cpu_split`` false, 1 core).
+    The launcher's and the benchmark's own helper nodes are onlookers too."""
+    return cpu_affinity.split(cpu_affinity.usable()) if typed('cpu_split', _texts(given)['cpu_split']) else None
+
+
+def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[str, dict[str, object]]]:
+    """(executable, parameters) of each node to start, in order, the bridge last, for these
+    argument values (text as `ros2 launch` gives it, or Python values; missing: the default).
+    ``extra_listeners``: state subscribers outside the table the bridge waits for too (the
+    launcher's own helper node)."""
+    text = _texts(given)
     nodes = [node for node in NODES if not node.enabled_by or typed(node.enabled_by, text[node.enabled_by])]
     listeners = sum(node.listens_to_states for node in nodes) + extra_listeners
+    split = cores(given)
     started = []
     for node in nodes:
         parameters = {name: typed(name, text[name]) for name in node.arguments if text[name] != ''}
         parameters = {name: value for name, value in parameters.items() if value != []}   # [] has no ROS type
+        if split:
+            parameters['cpu_affinity'] = split[0] if node.decision_path else split[1]
         if node.executable == BRIDGE:
             parameters['wait_for_subscribers'] = listeners
         started.append((node.executable, parameters))

@@ -29,8 +29,8 @@ from rosgraph_msgs.msg import Clock
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC,
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
-                                      Waiter, declare_config, declare_thread_priority, describe, follow, run_node,
-                                      take_waiting)
+                                      Waiter, declare_config, declare_cpu_affinity, declare_thread_priority, describe,
+                                      follow, run_node, take_waiting)
 from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of
 from exit_decision.ros.states_cdr import encode_states
 from exit_decision.scenario.simulation import CommandError
@@ -45,6 +45,7 @@ class SumoBridge(Node):
         super().__init__('sumo_bridge')
         self.config = declare_config(self)
         declare_thread_priority(self)
+        declare_cpu_affinity(self)
         def p(name, default, descriptor):
             return declare(self, name, default, descriptor)
         self.timing = p('timing', 'synchronous', describe(

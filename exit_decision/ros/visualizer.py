@@ -46,6 +46,7 @@ from exit_decision.ros.common import (
     Diagnostics,
     declare,
     declare_config,
+    declare_cpu_affinity,
     describe,
     follow,
     run_node,
@@ -91,6 +92,7 @@ class Visualizer(Node):
     def __init__(self):
         super().__init__('visualizer')
         config = declare_config(self)
+        declare_cpu_affinity(self)
         self.max_rate = declare(self, 'max_rate', 20.0, describe(
             '[Hz] most marker arrays per wall-clock second; 0: one per vehicle-state message; applies at once',
             float_range=(0.0, 1000.0)))
