@@ -627,7 +627,10 @@ def test_cpu_affinity_pins_every_thread_of_the_decision_node(setup, tmp_path):
     log = tmp_path / 'composed.log'
     composed = start_node('graph_and_decision', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
                                                  'decision_node:cpu_affinity': [last]}, log)
-    assert composed.wait(60) == 1
+    try:
+        assert composed.wait(60) == 1
+    finally:
+        stop(composed)
     text = log.read_text()
     assert len(text.strip().splitlines()) == 1 and 'parameter cpu_affinity:' in text and 'differ' in text, text
 
