@@ -156,9 +156,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     from exit_decision.step_gaps import episode_and_step
 
     # (episode, step) -> when the observer's middleware received it (its receive stamp, so the
-    # observer's own executor, which may lag on 2 busy cores, does not count)
+    # observer's own executor, which may lag on 2 busy cores, does not count), and when its
+    # publisher wrote it (its source stamp: no delivery, to the observer or anyone)
     states_at: dict[tuple[int, int], float] = {}
     commands_at: dict[tuple[int, int], float] = {}
+    written: dict[str, dict[tuple[int, int], float]] = {'states': {}, 'commands': {}}
     counted = {'states': 0, 'step_length': 0.0}   # states received since the first command
     probe = ProbeNode('bench_observer')
     node = probe.node
@@ -167,11 +169,13 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     # load the 2 cores it measures on
     def on_states(raw: bytes, info) -> None:
         states_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
+        written['states'][episode_and_step(raw)] = info['source_timestamp'] * 1e-9
         counted['states'] += bool(commands_at)
         counted['step_length'] = counted['step_length'] or deserialize_message(raw, VehicleStateArray).step_length
 
     def on_commands(raw: bytes, info) -> None:
         commands_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
+        written['commands'][episode_and_step(raw)] = info['source_timestamp'] * 1e-9
 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)
@@ -198,7 +202,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
                 probe.spin_once(0.1)
             decision_start = time.time()
             launcher.start(deciding)
-            onlooking.enter_context(cpu_affinity.pinned(split and split[1]))   # every node started: see run_stack
+            onlooking.enter_context(cpu_affinity.pinned(split and split[1]))   # every node started (see run_stack)
             if thread_priority:   # the observer too, its children started: its receive stamps must not lag theirs
                 realtime.apply(thread_priority)
             pending = None
@@ -216,6 +220,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
             cpu_used = {name: seconds - cpu_at_first_command.get(name, 0.0)
                         for name, seconds in process_cpu_seconds(launcher).items()}
             memory_at_end = process_memory_mb(launcher)
+            cores_used = process_cores(launcher)
         finally:
             launcher.stop()
             probe.close()
@@ -230,6 +235,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         return f'median {np.median(values):.2f} ms, p99 {np.percentile(values, 99):.2f} ms'
 
     latency = np.array([(commands_at[key] - states_at[key]) * 1000 for key in answered_steps])
+    written_latency = np.array([(written['commands'][key] - written['states'][key]) * 1000 for key in answered_steps])
     answer = f'{answered["at"] - decision_start:.2f} s' if answered['at'] else '(no answer)'
     core_count = len(os.sched_getaffinity(0))
     return '\n'.join([
@@ -242,13 +248,16 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
          f'first command after {first_command - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
         f'  states -> commands latency: {spread(latency)}',
+        f'    the same from the publishers\' source stamps (states written -> commands written): '
+        f'{spread(written_latency)}',
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
         f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {core_count * 1000 * elapsed / measured:.2f} '
         f'that {core_count} cores have per step at this rate)',
         '  resident memory [MB] at the first command -> after the steps: ' + ', '.join(
             f'{name} {memory_at_first_command[name]:.0f} -> {memory_at_end[name]:.0f}'
-            for name in memory_at_end if name in memory_at_first_command)])
+            for name in memory_at_end if name in memory_at_first_command),
+        '  cores of their threads: ' + ', '.join(f'{name} {cores}' for name, cores in cores_used.items())])
 
 
 def proc_files(launcher, file: str) -> dict[str, str]:
@@ -267,6 +276,23 @@ def process_memory_mb(launcher) -> dict[str, float]:
     shows whether a node's memory grows with the steps (the recorder's must not)."""
     return {name: next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
             for name, status in proc_files(launcher, 'status').items()}
+
+
+def process_cores(launcher) -> dict[str, list[int]]:
+    """The cores any thread of each running process of the launcher, and of this process
+    (``observer``), may run on: what ``cpu_split`` and the nodes' ``cpu_affinity`` gave them."""
+    pids = {'observer': os.getpid(), **{name: process.pid for name, process in launcher.processes.items()}}
+    cores = {}
+    for name, pid in pids.items():
+        allowed = set()
+        try:
+            for thread in os.listdir(f'/proc/{pid}/task'):
+                with contextlib.suppress(OSError):   # it ended meanwhile
+                    allowed |= os.sched_getaffinity(int(thread))
+        except OSError:   # the process has ended
+            continue
+        cores[name] = sorted(allowed)
+    return cores
 
 
 def process_cpu_seconds(launcher) -> dict[str, float]:

@@ -524,6 +524,7 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
     ('visualizer', {'cpu_affinity': [4096]}, 'parameter cpu_affinity: [4096] is not allowed; allowed: a non-empty list '
                                              'of the cores this process may use'),
     ('sumo_bridge', {'cpu_affinity': 0}, 'parameter cpu_affinity: 0 is not allowed; allowed: a non-empty list'),
+    ('recorder', {'cpu_affinity': []}, 'parameter cpu_affinity: [] is not allowed; allowed: a non-empty list'),
     ('player', {}, 'parameter bag_path: not given'),
     ('player', {'bag_path': '/nonexistent/bag'}, 'parameter bag_path: /nonexistent/bag: no such bag'),
     ('player', {'bag_path': 'CORRUPT'}, 'not a readable bag'),
@@ -834,12 +835,22 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
     what it measured (a short run; its figures are not judged here)."""
     from exit_decision.benchmarks import bench_ros
     from exit_decision.ros import cpu_affinity
+    before = os.sched_getaffinity(0)
     text = bench_ros('', '', 100, 0)
+    assert os.sched_getaffinity(0) == before, 'the benchmark leaves its caller on the cores it had'
     split = cpu_affinity.split(cpu_affinity.usable())
     where = f'decision path on cores {split[0]}, onlookers on {split[1]}, ' if split else 'no core split, '
     assert f'normal scheduling, {where}100 steps' in text, text
-    for figure in ('real-time factor', 'states -> commands latency: median', 'CPU per step [ms]: ',
-                   'resident memory [MB] at the first command -> after the steps: '):
+    for figure in ('real-time factor', 'states -> commands latency: median', 'from the publishers\' source stamps',
+                   'CPU per step [ms]: ', 'resident memory [MB] at the first command -> after the steps: '):
         assert figure in text, (figure, text)
-    for line in ('CPU per step', 'resident memory'):
+    for line in ('CPU per step', 'resident memory', 'cores of their threads'):
         assert all(name in next(row for row in text.splitlines() if line in row) for name, _ in plan({})), text
+    if split:   # every thread of every process where the split puts it, the observer with the onlookers
+        import re
+        from exit_decision.ros.stack_nodes import NODES
+        row = next(row for row in text.splitlines() if 'cores of their threads' in row)
+        printed = {name: [int(core) for core in cores.split(', ')] for name, cores in re.findall(r'(\w+) \[([\d, ]+)\]', row)}
+        path, onlookers = split
+        assert printed == {'observer': onlookers, **{node.executable: path if node.decision_path else onlookers
+                                                     for node in NODES}}, text

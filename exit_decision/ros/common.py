@@ -173,12 +173,13 @@ def declare_cpu_affinity(node: Node) -> list[int]:
     cores = declare(node, 'cpu_affinity', cpu_affinity.AT_START, describe(
         cpu_affinity.DESCRIPTION, read_only=True,
         constraints=f'a non-empty list of the cores this process may use, {cpu_affinity.AT_START}'))
+    cores = list(cores or [])   # `-p cpu_affinity:=[]` comes as None (no type)
     reason = cpu_affinity.refusal(cores)
     if reason:
         raise ParameterError(f'parameter cpu_affinity: {reason}')
     if sorted(set(cores)) != cpu_affinity.usable():
         cpu_affinity.pin(cores)
-    return list(cores)
+    return cores
 
 
 def declare_config(node: Node) -> ProjectConfig:

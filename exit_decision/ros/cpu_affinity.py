@@ -7,7 +7,8 @@ cores the stack may use and the onlookers (recorder, visualizer, the launcher's 
 benchmark's helper nodes) the rest. Measured on 2 cores (docs/design.md, "ROS 2 -> Speed"):
 with every process free to run anywhere, a thread of the path woken while both cores were busy
 was queued behind an onlooker on one core and waited there for milliseconds after the other
-core had gone idle; on cores of its own it never waits behind one. No privilege is needed.
+core had gone idle; on cores of its own no onlooker takes them from it (the path's own
+processes, and any other program of the machine, still share them). No privilege is needed.
 """
 from __future__ import annotations
 

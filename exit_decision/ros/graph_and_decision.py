@@ -32,7 +32,7 @@ def make_nodes() -> list:
     builder = GraphBuilderNode(decision)
     for name in ('thread_priority', 'cpu_affinity'):
         values = {node.get_name(): node.get_parameter(name).value for node in (builder, decision)}
-        values = {node: value if isinstance(value, int) else list(value) for node, value in values.items()}
+        values = {node: value if isinstance(value, int) else sorted(set(value)) for node, value in values.items()}
         if len({str(value) for value in values.values()}) > 1:
             raise ParameterError(f'parameter {name}: {values} differ; allowed: one value for both nodes of the '
                                  f'process')

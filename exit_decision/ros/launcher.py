@@ -126,7 +126,6 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     probe = ProbeNode('stack_launcher')
     node = probe.node
     state = {'step': -1, 'episode': -1, 'ended': 0}
-    onlooking = contextlib.ExitStack()
 
     def on_event(msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_ENDED:
@@ -140,6 +139,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     node.create_subscription(EpisodeEvent, EPISODE_TOPIC, on_event, EVENT_QOS)
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     client = node.create_client(SetParameters, '/decision_node/set_parameters')
+    onlooking = contextlib.ExitStack()   # this process back on its cores however the run ends
     try:
         for name in nodes:
             launcher.start(name)
@@ -152,7 +152,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
             probe.spin_once(0.2)
         launcher.start(BRIDGE)
-        # once every node is started: a node may only be pinned within the cores of whoever starts it
+        # once every node is started: a node takes only cores it could use at its start
         onlooking.enter_context(pinned(split and split[1]))
         switched = switch_to is None
         deadline = time.monotonic() + timeout
@@ -171,9 +171,9 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
         while state['ended'] < episodes and time.monotonic() < end:
             probe.spin_once(0.1)
     finally:
-        run.return_codes = launcher.stop()
-        probe.close()
-        onlooking.close()
+        with onlooking:
+            run.return_codes = launcher.stop()
+            probe.close()
     return run
 
 

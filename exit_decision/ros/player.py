@@ -26,14 +26,15 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
 
 from exit_decision.ros.bags import BAG_ALLOWED, READ_ERRORS, BagError, first_line, message_class, open_bag, topic_qos
-from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, ParameterError, declare, describe,
-                                      follow, run_node)
+from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, ParameterError, declare,
+                                      declare_cpu_affinity, describe, follow, run_node)
 
 PASS_SETTLE = 0.5   # [s] between two passes of a looped bag (see let_the_pass_settle)
 
 class Player(Node):
     def __init__(self):
         super().__init__('player')
+        declare_cpu_affinity(self)
         self.path = Path(declare(self, 'bag_path', '', describe('bag to play', read_only=True,
                                                                  constraints=BAG_ALLOWED)))
         self.rate = declare(self, 'rate', 1.0, describe('playback speed factor; applies from the next message',
