@@ -145,12 +145,14 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     import tempfile
 
     import numpy as np
+    from diagnostic_msgs.msg import DiagnosticArray
     from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
     from exit_decision.ros import cpu_affinity, realtime
-    from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, STATES_TOPIC, STREAM_QOS,
+                                          ProbeNode)
     from exit_decision.ros.launcher import StackLauncher
     from exit_decision.ros.stack_nodes import BRIDGE, cores, plan, process_of
     from exit_decision.step_gaps import episode_and_step
@@ -179,6 +181,16 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)
+    bridge_figures: dict[str, float] = {}   # the bridge's newest values on /diagnostics
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == BRIDGE:
+                bridge_figures.clear()
+                bridge_figures.update({value.key: float(value.value) for value in status.values})
+                bridge_figures['received'] = time.monotonic()
+
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_diagnostics, DIAGNOSTICS_QOS)
     parameters_client = node.create_client(GetParameters, '/decision_node/get_parameters')
     answered = {'at': 0.0}
     cpu_at_first_command: dict[str, float] = {}
@@ -219,6 +231,9 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
                 probe.spin_once(0.01)
             cpu_used = {name: seconds - cpu_at_first_command.get(name, 0.0)
                         for name, seconds in process_cpu_seconds(launcher).items()}
+            steps_done = time.monotonic()   # the bridge's figures of a later second cover these steps
+            while bridge_figures.get('received', 0.0) < steps_done + 0.1 and time.monotonic() < steps_done + 3.0:
+                probe.spin_once(0.05)
             memory_at_end = process_memory_mb(launcher)
             cores_used = process_cores(launcher)
         finally:
@@ -250,6 +265,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         f'  states -> commands latency: {spread(latency)}',
         f'    the same from the publishers\' source stamps (states written -> commands written): '
         f'{spread(written_latency)}',
+        (f'    the bridge\'s own wait, states published -> commands accepted (its last '
+         f'{bridge_figures["decision_wait_steps"]:.0f} decision steps, on /diagnostics): median '
+         f'{bridge_figures["decision_wait_ms_median"]:.2f} ms, p99 {bridge_figures["decision_wait_ms_p99"]:.2f} ms, '
+         f'max {bridge_figures["decision_wait_ms_max"]:.2f} ms' if 'decision_wait_steps' in bridge_figures
+         else '    the bridge\'s own wait: (no /diagnostics from the bridge)'),
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
         f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {core_count * 1000 * elapsed / measured:.2f} '

@@ -199,6 +199,7 @@ class Diagnostics:
     def __init__(self, node: Node, name: str):
         self.node, self.name = node, name
         self.counters: dict[str, float] = {}
+        self.figures: list[Callable[[], dict[str, float]]] = []   # more values, computed at each publish
         self.quiet_until: dict[str, float] = {}   # per rejected key: no log line before this (monotonic) time
         self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         # once a wall-clock second, also under use_sim_time (stamped with the node's clock)
@@ -280,10 +281,13 @@ class Diagnostics:
 
     def publish(self) -> None:
         problems = sum(value for key, value in self.counters.items() if key.startswith('rejected'))
+        values = dict(self.counters)
+        for figures in self.figures:
+            values.update(figures())
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK, name=self.name,
             message=f'{problems:g} rejected messages' if problems else 'ok', hardware_id='exit_decision',
-            values=[KeyValue(key=key, value=f'{value:g}') for key, value in sorted(self.counters.items())])
+            values=[KeyValue(key=key, value=f'{value:g}') for key, value in sorted(values.items())])
         message = DiagnosticArray(status=[status])
         message.header.stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(message)

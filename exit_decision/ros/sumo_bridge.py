@@ -7,6 +7,10 @@ Publishes /clock (simulation time), the vehicle states of every step and episode
   previous commands and goes on): deterministic, the mode for evaluation;
 - realtime: steps on a wall-clock schedule (``realtime_factor`` x real time) and applies
   the newest commands that arrived.
+In synchronous mode /diagnostics also has the bridge's wait for the commands of a decision
+step, from just before it publishes that step's states to the commands accepted
+(``decision_wait_ms_median``, ``_p99``, ``_max`` over the last DECISION_WAIT_WINDOW decision
+steps): the state-to-command latency as the simulation sees it.
 Commands are checked on arrival. A message is rejected whole, counted on /diagnostics and
 changes nothing (in synchronous mode the bridge goes on waiting for a good answer) when it
 cannot answer now: another episode, or (synchronous) any step but the one waited on,
@@ -18,7 +22,9 @@ that is not a controlled CAV on the road is rejected alone; the step goes on.
 from __future__ import annotations
 
 import time
+from collections import deque
 
+import numpy as np
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -38,6 +44,7 @@ from exit_decision.traffic import CavCommand
 from exit_decision.input_checks import CommandLimits, InputError
 
 PEER_REPORT_PERIOD = 5.0   # [s] how often a bridge waiting for its peers says what it waits for
+DECISION_WAIT_WINDOW = 1000   # decision steps the wait figures on /diagnostics cover
 
 
 class SumoBridge(Node):
@@ -91,6 +98,9 @@ class SumoBridge(Node):
         self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
         self.last_command_step = -1         # realtime: step of the newest accepted commands
         self.pending: dict[str, CavCommand] | None = None   # accepted, not yet applied
+        self.published_at = 0.0                              # monotonic time just before the newest states went out
+        self.decision_waits: deque[float] = deque(maxlen=DECISION_WAIT_WINDOW)   # [s] synchronous: states -> commands
+        self.diagnostics.figures.append(self.decision_wait_figures)
         self.executor_ = SingleThreadedExecutor(context=self.context)
         self.executor_.add_node(self)
         self.waiter = Waiter([self], self.executor_)   # the waits of the loop: commands taken without an executor pass
@@ -150,6 +160,7 @@ class SumoBridge(Node):
             while rclpy.ok(context=self.context):
                 take_waiting(self.commands)   # the whole queue at once: a flood on the topic cannot bury the answer
                 if self.pending is not None:
+                    self.decision_waits.append(time.monotonic() - self.published_at)
                     return self.take_commands()
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -164,10 +175,19 @@ class SumoBridge(Node):
 
     # --- publishing -----------------------------------------------------------------------------
 
+    def decision_wait_figures(self) -> dict[str, float]:
+        if not self.decision_waits:
+            return {}
+        waits = np.array(self.decision_waits) * 1000
+        return {'decision_wait_ms_median': float(np.median(waits)),
+                'decision_wait_ms_p99': float(np.percentile(waits, 99)),
+                'decision_wait_ms_max': float(waits.max()), 'decision_wait_steps': len(waits)}
+
     def publish_state(self, result) -> None:
         self.clock_pub.publish(Clock(clock=stamp_of(result.time)))
-        self.states_pub.publish(encode_states(result.vehicles, episode=self.episode, step=result.step,
-                                              step_length=self.step_length))
+        encoded = encode_states(result.vehicles, episode=self.episode, step=result.step, step_length=self.step_length)
+        self.published_at = time.monotonic()
+        self.states_pub.publish(encoded)
         self.published_step = result.step
 
     def publish_event(self, event: int, seed: int, result) -> None:
