@@ -129,19 +129,22 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     the table its own process, synchronous mode, episodes until stopped.
 
     The other processes and the bridge start first; once they are up the one with the decision
-    node starts, and
-    an observer node measures from that moment the first answer of its get_parameters service,
-    the bridge's first step (it waits for the decision node's commands publisher, which comes
-    once the policies are loaded) and the first command. Then, from the first command on, ``steps`` steps: steps/s, the
-    real-time factor and, for each decision step, the time from receiving the states to
-    receiving the commands that answer them; and each process's CPU time per step over those
-    steps (from /proc: where the cores' time goes, which wall-clock figures on a shared
-    machine hide) and its resident memory at the first command and after the steps.
+    node starts, and an observer node measures from that moment the first answer of its
+    get_parameters service, the bridge's first step (it waits for the decision node's commands
+    publisher, which comes once the policies are loaded) and the first command. Then, from the
+    first command on, ``steps`` steps: steps/s, the real-time factor and the state-to-command
+    latency: the synchronous bridge's own wait for a decision step's commands (from its
+    /diagnostics, a second after the steps), and for each decision step the time from the
+    observer receiving the states to it receiving the commands (its receive stamps lag when its
+    cores are busy) and from the states written to the commands written (source stamps); each
+    process's CPU time per step over those steps (from /proc: where the cores' time goes, which
+    wall-clock figures on a shared machine hide), its resident memory at the first command and
+    after the steps, and the cores its threads may run on.
     ``thread_priority``: the nodes on the decision path run real-time at it, and so does the
     observer once they are started (its receive stamps must not lag theirs), until it returns
     (0: normal scheduling). ``cpu_split``: the stack's default, the decision path and the
-    onlookers on cores of their own; the observer, an onlooker, is on the onlookers' cores once
-    the nodes are started, until it returns."""
+    onlookers on cores of their own (normal scheduling only); the observer, an onlooker, is on
+    the onlookers' cores once the nodes are started, until it returns."""
     import tempfile
 
     import numpy as np
@@ -262,14 +265,13 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
          f'the bridge\'s first step after {min(states_at.values()) - decision_start:.2f} s, '
          f'first command after {first_command - decision_start:.2f} s'),
         f'  steps/s {measured / elapsed:.0f}, real-time factor {measured * counted["step_length"] / elapsed:.1f}x',
-        f'  states -> commands latency: {spread(latency)}',
-        f'    the same from the publishers\' source stamps (states written -> commands written): '
-        f'{spread(written_latency)}',
-        (f'    the bridge\'s own wait, states published -> commands accepted (its last '
-         f'{bridge_figures["decision_wait_steps"]:.0f} decision steps, on /diagnostics): median '
+        ('  states -> commands latency, the bridge\'s own wait from publishing the states to the commands '
+         f'accepted (its last {bridge_figures["decision_wait_steps"]:.0f} decision steps, on /diagnostics): median '
          f'{bridge_figures["decision_wait_ms_median"]:.2f} ms, p99 {bridge_figures["decision_wait_ms_p99"]:.2f} ms, '
          f'max {bridge_figures["decision_wait_ms_max"]:.2f} ms' if 'decision_wait_steps' in bridge_figures
-         else '    the bridge\'s own wait: (no /diagnostics from the bridge)'),
+         else '  states -> commands latency, the bridge\'s own wait: (no /diagnostics from the bridge)'),
+        f'    the observer\'s, from its receive stamps (late when its cores are busy): {spread(latency)}',
+        f'    from the publishers\' source stamps (states written -> commands written): {spread(written_latency)}',
         '  CPU per step [ms]: ' + ', '.join(f'{name} {seconds * 1000 / measured:.2f}' for name, seconds in
                                             sorted(cpu_used.items(), key=lambda item: -item[1])) +
         f' (sum {sum(cpu_used.values()) * 1000 / measured:.2f} of the {core_count * 1000 * elapsed / measured:.2f} '

@@ -37,9 +37,9 @@ def _thread_priority(parser: argparse.ArgumentParser, what: str = '') -> None:
 
 def _cpu_split(parser: argparse.ArgumentParser, what: str = '') -> None:
     parser.add_argument('--no-cpu-split', action='store_true',
-                        help=what + 'every node on every core, instead of the default: the decision path (bridge, graph '
-                                    'builder, decision node) on the first half of the cores, the recorder and the '
-                                    'visualizer on the rest')
+                        help=what + 'every node on every core, instead of the default with the normal scheduling: the '
+                                    'decision path (bridge, graph builder, decision node) on the first half of the '
+                                    'cores, the recorder and the visualizer on the rest')
 
 
 def _check_thread_priority(priority: int) -> None:

@@ -97,8 +97,8 @@ def test_arguments_become_typed_parameters_and_empty_ones_keep_the_nodes_default
     ([0, 1], ([0], [1])), ([4, 5, 6], ([4, 5], [6])), ([0, 1, 2, 3], ([0, 1], [2, 3])), ([3], None)])
 def test_the_decision_path_and_the_onlookers_get_cores_of_their_own(monkeypatch, usable, expected):
     """cpu_split (the default): the bridge and graph_and_decision on the first half of the cores
-    the stack may use, the recorder and the visualizer on the rest; no pinning when false or
-    with one core."""
+    the stack may use, the recorder and the visualizer on the rest; no pinning when false, with
+    a real-time thread_priority, or with one core."""
     from exit_decision.ros import cpu_affinity
     monkeypatch.setattr(cpu_affinity, 'usable', lambda: usable)
     nodes = dict(plan({}))
@@ -108,7 +108,8 @@ def test_the_decision_path_and_the_onlookers_get_cores_of_their_own(monkeypatch,
     path, onlookers = expected
     assert {name: parameters['cpu_affinity'] for name, parameters in nodes.items()} == {
         'recorder': onlookers, 'graph_and_decision': path, 'visualizer': onlookers, BRIDGE: path}
-    assert not any('cpu_affinity' in parameters for parameters in dict(plan({'cpu_split': 'false'})).values())
+    for off in ({'cpu_split': 'false'}, {'thread_priority': '10'}):
+        assert not any('cpu_affinity' in parameters for parameters in dict(plan(off)).values()), off
 
 
 def test_every_node_of_the_table_is_a_console_script():

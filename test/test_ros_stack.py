@@ -841,8 +841,9 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
     split = cpu_affinity.split(cpu_affinity.usable())
     where = f'decision path on cores {split[0]}, onlookers on {split[1]}, ' if split else 'no core split, '
     assert f'normal scheduling, {where}100 steps' in text, text
-    for figure in ('real-time factor', 'states -> commands latency: median', 'from the publishers\' source stamps',
-                   'the bridge\'s own wait, states published -> commands accepted (its last',
+    for figure in ('real-time factor', 'states -> commands latency, the bridge\'s own wait from publishing the '
+                   'states to the commands accepted (its last', 'from its receive stamps (late when its cores are '
+                   'busy): median', 'from the publishers\' source stamps (states written -> commands written): median',
                    'CPU per step [ms]: ', 'resident memory [MB] at the first command -> after the steps: '):
         assert figure in text, (figure, text)
     for line in ('CPU per step', 'resident memory', 'cores of their threads'):

@@ -9,6 +9,9 @@ with every process free to run anywhere, a thread of the path woken while both c
 was queued behind an onlooker on one core and waited there for milliseconds after the other
 core had gone idle; on cores of its own no onlooker takes them from it (the path's own
 processes, and any other program of the machine, still share them). No privilege is needed.
+Not with real-time priority: it preempts the onlookers anyway, and on its share of the cores
+the path would keep them busy, so the kernel's reservation for the normal tasks of a core (50
+ms a second) would stop it at times (stalls of 56 ms measured).
 """
 from __future__ import annotations
 
@@ -20,9 +23,10 @@ from exit_decision.ros.realtime import each_thread
 
 DESCRIPTION = ('cores every thread of the process runs on, a list such as [0] (taskset); default: every core it may '
                'use at start')
-SPLIT_DESCRIPTION = ('true: the decision path (bridge, graph builder, decision node) on the first half of the cores '
-                     'the stack may use, the recorder and the visualizer on the rest (none with 1 core); false: every '
-                     'node on every core')
+SPLIT_DESCRIPTION = ('true: with the normal scheduling (thread_priority 0), the decision path (bridge, graph '
+                     'builder, decision node) on the first half of the cores the stack may use, the recorder and the '
+                     'visualizer on the rest (none with 1 core); false, or a real-time thread_priority: every node on '
+                     'every core')
 
 
 def usable() -> list[int]:

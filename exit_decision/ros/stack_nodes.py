@@ -107,9 +107,15 @@ def _texts(given: Mapping[str, object]) -> dict[str, str]:
 
 def cores(given: Mapping[str, object]) -> tuple[list[int], list[int]] | None:
     """(the decision path's cores, the onlookers' cores) for these argument values, from the
-    cores this process may use; None when the nodes are not split (``cpu_split`` false, 1 core).
-    The launcher's and the benchmark's own helper nodes are onlookers too."""
-    return cpu_affinity.split(cpu_affinity.usable()) if typed('cpu_split', _texts(given)['cpu_split']) else None
+    cores this process may use; None when the nodes are not split (``cpu_split`` false, 1 core,
+    or a real-time ``thread_priority``: on its share of the cores the synchronous path would
+    keep them busy, and the kernel's reservation for their normal tasks would stop it for tens
+    of ms; ``ros/cpu_affinity.py``). The
+    launcher's and the benchmark's own helper nodes are onlookers too."""
+    text = _texts(given)
+    if not typed('cpu_split', text['cpu_split']) or typed('thread_priority', text['thread_priority']):
+        return None
+    return cpu_affinity.split(cpu_affinity.usable())
 
 
 def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[str, dict[str, object]]]:
