@@ -173,14 +173,14 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     # the observer reads only (episode, step) of the messages (raw): decoding every one would
     # load the 2 cores it measures on
     def on_states(raw: bytes, info) -> None:
-        states_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
-        written['states'][episode_and_step(raw)] = info['source_timestamp'] * 1e-9
+        key = episode_and_step(raw)
+        states_at[key], written['states'][key] = info['received_timestamp'] * 1e-9, info['source_timestamp'] * 1e-9
         counted['states'] += bool(commands_at)
         counted['step_length'] = counted['step_length'] or deserialize_message(raw, VehicleStateArray).step_length
 
     def on_commands(raw: bytes, info) -> None:
-        commands_at[episode_and_step(raw)] = info['received_timestamp'] * 1e-9
-        written['commands'][episode_and_step(raw)] = info['source_timestamp'] * 1e-9
+        key = episode_and_step(raw)
+        commands_at[key], written['commands'][key] = info['received_timestamp'] * 1e-9, info['source_timestamp'] * 1e-9
 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS, raw=True)

@@ -112,7 +112,10 @@ def cores(given: Mapping[str, object]) -> tuple[list[int], list[int]] | None:
     keep them busy, and the kernel's reservation for their normal tasks would stop it for tens
     of ms; ``ros/cpu_affinity.py``). The
     launcher's and the benchmark's own helper nodes are onlookers too."""
-    text = _texts(given)
+    return _split(_texts(given))
+
+
+def _split(text: Mapping[str, str]) -> tuple[list[int], list[int]] | None:
     if not typed('cpu_split', text['cpu_split']) or typed('thread_priority', text['thread_priority']):
         return None
     return cpu_affinity.split(cpu_affinity.usable())
@@ -126,7 +129,7 @@ def plan(given: Mapping[str, object], extra_listeners: int = 0) -> list[tuple[st
     text = _texts(given)
     nodes = [node for node in NODES if not node.enabled_by or typed(node.enabled_by, text[node.enabled_by])]
     listeners = sum(node.listens_to_states for node in nodes) + extra_listeners
-    split = cores(given)
+    split = _split(text)
     started = []
     for node in nodes:
         parameters = {name: typed(name, text[name]) for name in node.arguments if text[name] != ''}
