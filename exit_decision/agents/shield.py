@@ -26,7 +26,7 @@ import numpy as np
 from exit_decision.actions import ActionGrid
 from exit_decision.config import ProjectConfig, ShieldConfig
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.traffic import HIGHWAY, TrafficSnapshot, VehicleState
+from exit_decision.traffic import HIGHWAY, Neighbours, TrafficSnapshot, VehicleState
 
 #: chooses an action index for a vehicle, given its mask over the grid
 Chooser = Callable[[VehicleState, np.ndarray], int]
@@ -70,18 +70,22 @@ class Shield:
 
     # --- one vehicle -----------------------------------------------------------------------
 
-    def leader(self, vehicle: VehicleState, lane: int, snapshot: TrafficSnapshot):
-        """Closest vehicle ahead in ``lane`` (a ramp in lane 0 before its diverge counts too)."""
-        if not vehicle.on_highway:
-            return snapshot.neighbours(vehicle.corridor, vehicle.position, vehicle.length,
-                                       exclude=vehicle.vehicle_id)
-        options = [snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
-                                       exclude=vehicle.vehicle_id)]
-        exit_ = self.geometry.exits.get(vehicle.edge_id)
-        if lane == 0 and exit_ is not None:
-            options.append(snapshot.neighbours((exit_.ramp, 0), vehicle.position,
-                                               vehicle.length, exclude=vehicle.vehicle_id))
-        return min(options, key=lambda n: n.leader_gap)
+    @staticmethod
+    def around(vehicle: VehicleState, lane: int, snapshot: TrafficSnapshot) -> Neighbours:
+        """The vehicle's neighbours in highway ``lane`` (on a ramp: in its ramp)."""
+        corridor = (HIGHWAY, lane) if vehicle.on_highway else vehicle.corridor
+        return snapshot.neighbours(corridor, vehicle.position, vehicle.length, exclude=vehicle.vehicle_id)
+
+    def leader(self, vehicle: VehicleState, lane: int, snapshot: TrafficSnapshot,
+               around: Neighbours | None = None) -> Neighbours:
+        """Closest vehicle ahead in ``lane`` (a ramp in lane 0 before its diverge counts too);
+        ``around``: the vehicle's ``around`` in that lane, if the caller has it already."""
+        around = self.around(vehicle, lane, snapshot) if around is None else around
+        exit_ = self.geometry.exits.get(vehicle.edge_id) if vehicle.on_highway and lane == 0 else None
+        if exit_ is None:
+            return around
+        ramp = snapshot.neighbours((exit_.ramp, 0), vehicle.position, vehicle.length, exclude=vehicle.vehicle_id)
+        return ramp if ramp.leader_gap < around.leader_gap else around
 
     def ego_motion(self, speed: float) -> tuple[np.ndarray, np.ndarray]:
         """Per acceleration of the grid, for a CAV at ``speed`` holding it one decision
@@ -90,8 +94,9 @@ class Shield:
         mask computes it once for its three lanes.)"""
         t, (a_t, two_decelerations, half_a_t2) = self.horizon, self.grid_motion
         v = speed
-        travel = np.where(v + a_t < 0, v * v / two_decelerations, v * t + half_a_t2)
-        speed_after = np.maximum(v + a_t, 0.0)
+        after = v + a_t
+        travel = np.where(after < 0, v * v / two_decelerations, v * t + half_a_t2)
+        speed_after = np.maximum(after, 0.0)
         return travel, speed_after ** 2 / (2 * self.config.ego_max_braking)
 
     def stop_capable(self, motion: tuple[np.ndarray, np.ndarray], gap: float, leader_speed: float) -> np.ndarray:
@@ -116,23 +121,21 @@ class Shield:
             if not self.geometry.lane_change_exists(vehicle, lane_change):
                 continue
             lane = vehicle.lane_index + lane_change
-            ok = np.ones(len(grid.accelerations), dtype=bool)
-            around = (snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
-                                          exclude=vehicle.vehicle_id) if vehicle.on_highway
-                      else snapshot.neighbours_of(vehicle))
+            ok = True   # every acceleration of the lane, until a layer narrows it
+            around = self.around(vehicle, lane, snapshot)
             if lane_change and c.lane_gap:
                 closing = max(around.follower.speed - vehicle.speed, 0.0) if around.follower else 0.0
                 if (around.leader_gap < c.gap_front
                         or around.follower_gap < c.gap_back + c.gap_back_time * closing):
                     continue
-                ok &= self.not_hard_braking   # a gap that needs hard braking is too small
+                ok = ok & self.not_hard_braking   # a gap that needs hard braking is too small
             if c.stop_capable:
-                ahead = self.leader(vehicle, lane, snapshot)
+                ahead = self.leader(vehicle, lane, snapshot, around)
                 if ahead.leader is not None:
-                    ok &= self.stop_capable(motion, ahead.leader_gap, ahead.leader.speed)
+                    ok = ok & self.stop_capable(motion, ahead.leader_gap, ahead.leader.speed)
             if c.human_follower_braking and around.follower is not None \
                     and not around.follower.controlled and around.follower_gap < c.human_follower_distance:
-                ok &= self.not_hard_braking
+                ok = ok & self.not_hard_braking
             allowed[grid.rows(lane_change)] = ok
         if not allowed.any():
             allowed[self.fallback] = True
