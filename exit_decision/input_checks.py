@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, CavCommand, VehicleState,
-                                   parse_vehicle_id)
+                                   vehicle_id_of)
 
 #: [m] SUMO's default lane width (the generated network sets none): the largest lateral offset
 LANE_WIDTH = 3.2
@@ -109,30 +109,37 @@ class StateLimits:
     def _edges(self) -> frozenset[str]:
         return frozenset(edge for edge, _ in self.lanes)
 
-    def check_vehicle(self, v: VehicleState) -> None:
-        def bad(field: str, allowed: str) -> InputError:
-            return InputError(f'vehicle {v.vehicle_id!r}: {field} {getattr(v, field)!r} is not {allowed}')
+    @cached_property
+    def _ids(self) -> frozenset[tuple[str, str]]:
+        """Every (vehicle_id, vehicle_class) an episode may have (``vehicle_id_of``): one look-up
+        instead of parsing each id of each step."""
+        return frozenset((vehicle_id_of(name, serial), name)
+                         for name, count in self.class_counts.items() for serial in range(count))
 
+    def check_vehicle(self, v: VehicleState) -> None:
         if v.vehicle_class not in self.class_counts:
-            raise bad('vehicle_class', f'a class of the scenario ({", ".join(self.class_counts)})')
-        named = parse_vehicle_id(v.vehicle_id)
-        if named is None or named[0] != v.vehicle_class or named[1] >= self.class_counts[v.vehicle_class]:
-            raise bad('vehicle_id', f'<class>_<n> with its class {v.vehicle_class} and n below '
-                                    f'{self.class_counts[v.vehicle_class]}')
+            raise _bad_field(v, 'vehicle_class', f'a class of the scenario ({", ".join(self.class_counts)})')
+        if (v.vehicle_id, v.vehicle_class) not in self._ids:
+            raise _bad_field(v, 'vehicle_id', f'<class>_<n> with its class {v.vehicle_class} and n below '
+                                       f'{self.class_counts[v.vehicle_class]}')
         if (v.edge_id, v.lane_index) not in self.lanes:
             raise InputError(f'vehicle {v.vehicle_id!r}: lane_index {v.lane_index} on edge_id {v.edge_id!r} '
                              f'is no lane of the road')
         if v.route_target not in self._edges:
-            raise bad('route_target', 'an edge of the road')
+            raise _bad_field(v, 'route_target', 'an edge of the road')
         for field, low, high in self._ranges[v.vehicle_class]:
             if not low <= getattr(v, field) <= high:
-                raise bad(field, f'finite within [{low:g}, {high:g}]')
+                raise _bad_field(v, field, f'finite within [{low:g}, {high:g}]')
         if not math.isclose(v.length, self.lengths[v.vehicle_class], rel_tol=1e-6):
-            raise bad('length', f'the {v.vehicle_class} length {self.lengths[v.vehicle_class]:g}')
+            raise _bad_field(v, 'length', f'the {v.vehicle_class} length {self.lengths[v.vehicle_class]:g}')
         if v.intention not in INTENTIONS:
-            raise bad('intention', 'one of -1, 0, 1')
+            raise _bad_field(v, 'intention', 'one of -1, 0, 1')
         if v.controlled and v.vehicle_class != 'CAV':
-            raise bad('controlled', 'false for a human-driven class')
+            raise _bad_field(v, 'controlled', 'false for a human-driven class')
+
+
+def _bad_field(v: VehicleState, field: str, allowed: str) -> InputError:
+    return InputError(f'vehicle {v.vehicle_id!r}: {field} {getattr(v, field)!r} is not {allowed}')
 
 
 @dataclass(frozen=True)

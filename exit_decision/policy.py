@@ -12,7 +12,7 @@ when configured, driving the CAVs that are off their route).
 from __future__ import annotations
 
 import subprocess
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -158,7 +158,7 @@ class PolicyController:
             raise PolicyError(f'{policy.path}: a mode-conditioned policy needs the mode weights to decide')
         self.weights = weights
 
-    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
-        snapshot = TrafficSnapshot(vehicles)
+    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
+        """The decision for the CAVs of ``graph``, built from the vehicles of ``snapshot``."""
         return greedy_decision(self.shield, graph, snapshot, self.policy.q_values(graph, snapshot, self.weights),
                                planner=self.planner)

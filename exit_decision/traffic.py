@@ -24,14 +24,6 @@ def vehicle_id_of(vehicle_class: str, serial: int) -> str:
     return f'{vehicle_class}_{serial}'
 
 
-def parse_vehicle_id(vehicle_id: str) -> tuple[str, int] | None:
-    """(class, serial) of an id made by ``vehicle_id_of``; None for any other string."""
-    name, _, serial = vehicle_id.rpartition('_')
-    if name not in VEHICLE_CLASSES or not serial.isascii() or not serial.isdigit() or str(int(serial)) != serial:
-        return None
-    return name, int(serial)
-
-
 @dataclass(frozen=True, slots=True)
 class VehicleState:
     """One vehicle at one step; mirrors exit_decision_msgs/VehicleState, plus ``on_highway``,

@@ -9,7 +9,7 @@ from conftest import make_vehicle
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import GraphBuilder, GraphInputError
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.traffic import CavCommand, parse_vehicle_id, vehicle_id_of
+from exit_decision.traffic import CavCommand, vehicle_id_of
 from exit_decision.input_checks import CommandLimits, InputError, StateLimits, StepGate
 
 
@@ -65,10 +65,12 @@ def test_message_level_checks(limits, project_config):
         limits.check([], step=0, step_length=0.5)
 
 
-def test_vehicle_ids_name_their_class():
-    assert parse_vehicle_id(vehicle_id_of('CAV', 12)) == ('CAV', 12)
-    for bad in ('CAV_', 'CAV_01', 'CAV_-1', 'CAR_1', 'CAV_1x', 'CAV_²'):
-        assert parse_vehicle_id(bad) is None, bad
+def test_vehicle_ids_name_their_class_and_a_serial_below_its_count(limits):
+    last = limits.class_counts['CAV'] - 1
+    limits.check_vehicle(make_vehicle(vehicle_id_of('CAV', last), 'CAV'))
+    for bad in ('CAV_', 'CAV_01', 'CAV_-1', 'CAR_1', 'CAV_1x', 'CAV_²', 'CAV_1 ', f'CAV_{last + 1}', 'HV1_0'):
+        with pytest.raises(InputError, match='vehicle_id'):
+            limits.check_vehicle(make_vehicle(bad, 'CAV'))
 
 
 def test_graph_rejects_lanes_outside_its_one_hot_and_keeps_its_slots(project_config):

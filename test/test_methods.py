@@ -94,7 +94,7 @@ def test_each_method_trains_and_leaves_an_evaluable_checkpoint(method, config_di
         for _ in range(30):
             q = policy.q_values(env.graph, env.sim.snapshot)
             assert q.shape == (config.graph.max_vehicles, trainer.grid.size) and np.isfinite(q).all()
-            decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
+            decision = controller.decide(env.graph, env.sim.snapshot)
             decided += len(decision.actions)
             env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
     finally:
@@ -142,6 +142,6 @@ def test_a_baseline_as_published_learns_its_papers_reward_without_our_measures(m
         env.reset(seed=10_000)
         while not env.graph.cav_mask.any():
             env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
-        assert controller.decide(env.graph, env.sim.snapshot.vehicles).actions, 'the checkpoint decides'
+        assert controller.decide(env.graph, env.sim.snapshot).actions, 'the checkpoint decides'
     finally:
         env.close()

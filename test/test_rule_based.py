@@ -7,6 +7,7 @@ from exit_decision.agents.shield import Shield
 from exit_decision.config import GraphConfig
 from exit_decision.graph import GraphBuilder
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import TrafficSnapshot
 
 from conftest import make_vehicle
 
@@ -23,7 +24,7 @@ def driver(project_config):
 def decide(driver, vehicles):
     graph = GraphBuilder(GraphConfig(max_vehicles=10, sensing_range=30.0, feature_set='paper'),
                          500.0, 25.0).build(vehicles)
-    decision = driver.decide(graph, vehicles)
+    decision = driver.decide(graph, TrafficSnapshot(vehicles))
     return {vid: driver.grid.command(index) for vid, index in decision.actions.items()}
 
 

@@ -475,7 +475,7 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
         env.reset(seed=7)
         done = False
         while not done:
-            decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
+            decision = controller.decide(env.graph, env.sim.snapshot)
             overrides = shield_overrides(decision, env.actions)
             assert len(overrides) == decision.overridden
             for vehicle_id, override in overrides.items():

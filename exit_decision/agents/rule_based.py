@@ -9,7 +9,6 @@ Every choice is made under the same shield as the learned policy, and quantised 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -154,8 +153,7 @@ class RuleBasedDriver:
             return int(candidates[np.argmin(distance)])
         return int(np.flatnonzero(mask)[0])
 
-    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision:
-        snapshot = TrafficSnapshot(vehicles)
+    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
         cav_ids = graph.cav_ids()
         return self.shield.decide(
             snapshot, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),

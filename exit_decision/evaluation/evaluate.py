@@ -45,7 +45,7 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
     while not done:
         action = np.full(env.graph.num_nodes, keep)
         if controller is not None:
-            decision = controller.decide(env.graph, env.sim.snapshot.vehicles)
+            decision = controller.decide(env.graph, env.sim.snapshot)
             row_of = env.graph.row_of()
             for vehicle_id, index in decision.actions.items():
                 action[row_of[vehicle_id]] = index

@@ -205,7 +205,7 @@ class Trainer:
             graph, snapshot = env.graph, env.sim.snapshot
             observed = self.encoder.encode(graph, snapshot)
             if demonstrate:
-                decision = self.demonstrator.decide(graph, snapshot.vehicles)
+                decision = self.demonstrator.decide(graph, snapshot)
             else:
                 q = q_values(self.agent.online, observed, weights)
                 decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (

@@ -32,7 +32,6 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
-from contextlib import ExitStack
 from pathlib import Path
 
 from exit_decision.ros import cpu_affinity, realtime
@@ -327,48 +326,60 @@ class Waiter:
     hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step."""
 
     EXECUTOR_PERIOD = 0.5   # [s]
+    #: the node attributes listing what a wait set holds, in the order ``_rclpy.WaitSet`` counts them
+    KINDS = ('subscriptions', 'guards', 'timers', 'clients', 'services')
 
     def __init__(self, nodes: Sequence[Node], executor: SingleThreadedExecutor):
         self.nodes, self.executor = tuple(nodes), executor
         self.executor_passed = time.monotonic()
+        self.wait_set, self.wait_set_counts = None, None
 
     def spin_once(self, timeout_sec: float) -> None:
-        nodes = self.nodes
-        entities = {kind: [item for node in nodes for item in getattr(node, attribute)]
-                    for kind, attribute in (('subscription', 'subscriptions'), ('service', 'services'),
-                                            ('client', 'clients'), ('timer', 'timers'),
-                                            ('guard_condition', 'guards'))}
-        with ExitStack() as alive:   # as rclpy's executor: no entity destroyed while waited on
-            for kind, items in entities.items():
+        """Wait up to ``timeout_sec`` and serve what is ready. Lean because every message of a
+        node costs one: the wait set is kept and refilled while the number of entities stays
+        (its creation was a fifth of a pass), and the entities are held as rclpy's executor
+        holds them (no entity destroyed while waited on), without an ExitStack (a pass cost
+        100 us of CPU here, 160 us inside the stack, for every states message of a step)."""
+        entities = [[item for node in self.nodes for item in getattr(node, kind)] for kind in self.KINDS]
+        held = []
+        try:
+            for items in entities:
                 kept = []
                 for item in items:
                     try:
-                        alive.enter_context(item.handle)
-                        kept.append(item)
+                        item.handle.__enter__()
                     except InvalidHandle:
-                        pass
-                entities[kind] = kept
-            wait_set = _rclpy.WaitSet(len(entities['subscription']), len(entities['guard_condition']),
-                                      len(entities['timer']), len(entities['client']), len(entities['service']), 0,
-                                      nodes[0].context.handle)
-            for kind, add in (('subscription', wait_set.add_subscription), ('service', wait_set.add_service),
-                              ('client', wait_set.add_client), ('timer', wait_set.add_timer),
-                              ('guard_condition', wait_set.add_guard_condition)):
-                for item in entities[kind]:
+                        continue
+                    held.append(item.handle)
+                    kept.append(item)
+                items[:] = kept
+            subscriptions, guards, timers, clients, services = entities
+            counts = tuple(map(len, entities))
+            if counts != self.wait_set_counts:
+                self.wait_set = _rclpy.WaitSet(*counts, 0, self.nodes[0].context.handle)   # no events
+                self.wait_set_counts = counts
+            wait_set = self.wait_set
+            wait_set.clear_entities()
+            for items, add in zip(entities, (wait_set.add_subscription, wait_set.add_guard_condition,
+                                             wait_set.add_timer, wait_set.add_client, wait_set.add_service)):
+                for item in items:
                     add(item.handle)
             wait_set.wait(int(timeout_sec * 1e9))
-            ready = {kind: set(wait_set.get_ready_entities(kind)) for kind in entities}
-            pointers = {kind: [item.handle.pointer for item in items] for kind, items in entities.items()}
-        triggered = [guard for guard, pointer in zip(entities['guard_condition'], pointers['guard_condition'])
-                     if pointer in ready['guard_condition'] and guard.callback is not None]
-        for subscription, pointer in zip(entities['subscription'], pointers['subscription']):
-            if pointer in ready['subscription']:
-                take_waiting(subscription, subscription.qos_profile.depth or None)   # keep-all: depth 0
+            ready_subscriptions = set(wait_set.get_ready_entities('subscription'))
+            ready_guards = set(wait_set.get_ready_entities('guard_condition')) if guards else ()
+            others_ready = any(wait_set.get_ready_entities(kind) for kind, items in
+                               (('timer', timers), ('client', clients), ('service', services)) if items)
+            taken = [item for item in subscriptions if item.handle.pointer in ready_subscriptions]
+            triggered = [guard for guard in guards if guard.callback is not None and guard.handle.pointer in ready_guards]
+        finally:
+            for handle in held:
+                handle.__exit__(None, None, None)
+        for subscription in taken:
+            take_waiting(subscription, subscription.qos_profile.depth or None)   # keep-all: depth 0
         for guard in triggered:
             guard.callback()
         now = time.monotonic()
-        if (ready['service'] or ready['client'] or ready['timer'] or not ready['subscription']
-                or now - self.executor_passed >= self.EXECUTOR_PERIOD):
+        if others_ready or not taken or now - self.executor_passed >= self.EXECUTOR_PERIOD:
             self.executor_passed = now
             self.executor.spin_once(timeout_sec=0.0)
 

@@ -56,6 +56,7 @@ from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, overr
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
+from exit_decision.traffic import TrafficSnapshot
 
 if TYPE_CHECKING:
     from exit_decision.policy import PolicyController
@@ -168,7 +169,6 @@ class DecisionNode(Node):
 
             from exit_decision.agents.lane_planner import LanePlanner
             from exit_decision.policy import load_policy
-            from exit_decision.traffic import TrafficSnapshot
             torch.set_num_threads(1)   # per thread: the warm-up as the decisions will run
             config = self.config
             n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
@@ -329,9 +329,9 @@ class DecisionNode(Node):
             return
         (graph, stamp), vehicles = self.graphs.pop(key), self.states.pop(key)
         self.forget_before(key)
-        self.decide(key, graph, vehicles, stamp)
+        self.decide(key, graph, TrafficSnapshot(vehicles), stamp)
 
-    def decide(self, key: tuple[int, int], graph: TrafficGraph, vehicles: list, stamp) -> None:
+    def decide(self, key: tuple[int, int], graph: TrafficGraph, snapshot: TrafficSnapshot, stamp) -> None:
         """Decide the step ``key`` = (episode, step) from its graph and checked states, and
         publish the commands (then the shield's overrides), once per step."""
         if key <= self.last_decided:
@@ -339,7 +339,7 @@ class DecisionNode(Node):
         self.last_decided = key
         try:
             controller = self.controller()
-            decision = controller.decide(graph, vehicles)
+            decision = controller.decide(graph, snapshot)
         except KeyError as error:   # a CAV of the graph is not in the states
             self.diagnostics.reject('graphs', f'graph of step {key[1]}', f'vehicle {error} is not in the states')
             return

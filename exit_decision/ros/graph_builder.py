@@ -24,6 +24,7 @@ from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH
 from exit_decision.ros.conversions import graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import StateLimits, StepGate
+from exit_decision.traffic import TrafficSnapshot
 
 if TYPE_CHECKING:
     from exit_decision.ros.decision_node import DecisionNode
@@ -74,14 +75,15 @@ class GraphBuilderNode(Node):
         if states is None:
             return
         episode, step = states.episode, states.step
+        snapshot = TrafficSnapshot(states.vehicles)   # one neighbour index for the graph and the decision
         try:
-            graph = self.builder.build(states.vehicles)
+            graph = self.builder.build(states.vehicles, snapshot)
         except (GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
         self.diagnostics.count('skipped_decision_steps', self.gate.accept(step) // self.interval)
         if self.decision is not None:
-            self.decision.decide((episode, step), graph, states.vehicles, states.stamp)
+            self.decision.decide((episode, step), graph, snapshot, states.stamp)
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=episode, step=step,
                                             stamp=states.stamp))
         self.diagnostics.count('graphs')

@@ -37,6 +37,7 @@ from exit_decision.ros.bags import BagError, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import commands_from_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import TrafficSnapshot
 
 
 @dataclass
@@ -128,7 +129,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         controller = controllers[path]
         if controller.policy.conditioned:
             controller.weights = weight_input(config.mode(mode_name))
-        decision = controller.decide(graphs[key], states_from_msg(states[key], config.scenario.road.names.sections))
+        decision = controller.decide(graphs[key], TrafficSnapshot(states_from_msg(states[key], config.scenario.road.names.sections)))
         report.decisions += 1
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1
