@@ -165,3 +165,46 @@ def test_a_message_too_short_for_its_header_is_an_input_error():
     from exit_decision.step_gaps import episode_and_step
     with pytest.raises(InputError, match='6 bytes: too short for a header'):
         episode_and_step(b'\x00\x01\x00\x00\x00\x00')
+
+
+# --- CAV commands as CDR bytes (ros/commands_cdr.py: what the decision node publishes and the bridge decodes) ---
+
+def test_commands_encoded_as_cdr_are_the_message_rclpy_reads():
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from exit_decision.ros.commands_cdr import decode_commands, encode_commands
+    rng = np.random.default_rng(0)
+    for count in (0, 1, 2, 7, 12):   # strings of every length modulo 4 shift what follows them
+        commands = {f'CAV_{int(serial)}': CavCommand(int(rng.integers(-1, 2)), float(rng.uniform(-8, 5)))
+                    for serial in rng.choice(150, count, replace=False)}
+        fields = dict(episode=int(rng.integers(2**32)), step=count * 5, stamp=stamp_of(count * 0.5),
+                      mode='CON' + 'P' * count, algorithm='mdgqn' + '_x' * count, policy='p' * (count + 1))
+        ours = encode_commands(commands, **fields)
+        theirs = serialize_message(commands_to_msg(commands, **fields))   # rclpy's bytes, padding and all
+        expected = deserialize_message(theirs, CavCommandArray)   # accelerations as float32
+        assert deserialize_message(ours, CavCommandArray) == expected, count
+        decoded = decode_commands(theirs)
+        assert decoded.commands == commands_from_msg(expected), count
+        assert (decoded.episode, decoded.step, decoded.stamp, decoded.mode, decoded.algorithm, decoded.policy) == (
+            fields['episode'], fields['step'], fields['stamp'], fields['mode'], fields['algorithm'], fields['policy'])
+
+
+def test_malformed_cdr_commands_are_refused_naming_what():
+    from exit_decision.ros.commands_cdr import decode_commands, encode_commands
+    fields = dict(episode=0, step=5, stamp=stamp_of(0.5), mode='AGGI', algorithm='gqn', policy='p')
+    good = encode_commands({'CAV_1': CavCommand(0, 1.0), 'CAV_12': CavCommand(1, -2.0), 'CAV_2': CavCommand(0, 0.5)},
+                           **fields)
+    assert list(decode_commands(good).commands) == ['CAV_1', 'CAV_12', 'CAV_2']
+    with pytest.raises(MessageError, match='not little-endian CDR'):
+        decode_commands(b'\x00\x00' + good[2:])
+    with pytest.raises(MessageError, match='not a CavCommandArray'):
+        decode_commands(good[:-8])   # cut short
+    with pytest.raises(MessageError, match="'CAV_1' is listed twice"):
+        decode_commands(good.replace(b'CAV_2\0', b'CAV_1\0'))   # same length: only the id changes
+    for value in (math.inf, math.nan):
+        with pytest.raises(MessageError, match="'CAV_1' acceleration is not finite"):
+            decode_commands(encode_commands({'CAV_1': CavCommand(0, value)}, **fields))
+    unterminated = bytearray(good)
+    unterminated[unterminated.index(b'CAV_12\0') + 6] = ord('7')   # read to its length: CAV_127
+    with pytest.raises(MessageError, match='not one NUL-terminated string'):
+        decode_commands(bytes(unterminated))

@@ -52,7 +52,8 @@ from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
                                       declare_cpu_affinity, declare_thread_priority, describe, run_node)
-from exit_decision.ros.conversions import commands_to_msg, graph_from_msg, overrides_to_msg
+from exit_decision.ros.commands_cdr import encode_commands
+from exit_decision.ros.conversions import graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate
@@ -344,9 +345,8 @@ class DecisionNode(Node):
             self.diagnostics.reject('graphs', f'graph of step {key[1]}', f'vehicle {error} is not in the states')
             return
         commands = {vehicle_id: self.grid.command(index) for vehicle_id, index in decision.actions.items()}
-        self.publisher.publish(commands_to_msg(commands, episode=key[0], step=key[1], stamp=stamp,
-                                               mode=self.mode, algorithm=self.algorithm,
-                                               policy=str(controller.policy.path)))
+        self.publisher.publish(encode_commands(commands, episode=key[0], step=key[1], stamp=stamp, mode=self.mode,
+                                               algorithm=self.algorithm, policy=str(controller.policy.path)))
         self.diagnostics.count('decisions', len(commands))
         self.diagnostics.count('shield_overrides', decision.overridden)
         overrides = shield_overrides(decision, self.grid)

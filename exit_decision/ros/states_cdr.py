@@ -6,10 +6,8 @@ and the visualizer decode them. Through rclpy, a message of 20 vehicles cost the
 0.23 ms to build and convert (``states_to_msg``, then the middleware's conversion in
 ``publish``) and a reader 0.25 ms to decode (``deserialize_message``, ``states_from_msg``);
 here 0.04 ms and 0.07 ms (docs/design.md, "ROS 2 -> Speed"). The layout is the message's
-plain CDR (what rmw_fastrtps writes): a 4-byte encapsulation header, then each field aligned
-to its size (at most 8) from the start of the data, strings as a uint32 length with the NUL,
-and the whole padded to 4 bytes, little endian (decoding refuses the other order). Tests
-check both directions against rclpy's serialisation on an episode's states;
+plain CDR (``cdr``). Tests check both directions against rclpy's serialisation on an
+episode's states;
 ``conversions.states_to_msg`` stays for who needs the message object.
 """
 from __future__ import annotations
@@ -22,11 +20,10 @@ from dataclasses import dataclass
 from builtin_interfaces.msg import Time
 
 from exit_decision.input_checks import StateLimits
+from exit_decision.ros.cdr import EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish, pad, string
 from exit_decision.ros.conversions import (CLASS_CODES, CLASS_NAMES, MessageError, check_unique_ids,
                                            check_vehicle_fields, stamp_of)
 from exit_decision.traffic import VehicleState
-
-LITTLE_ENDIAN = b'\x00\x01\x00\x00'   # CDR_LE, no options
 
 
 @dataclass(frozen=True)
@@ -38,21 +35,9 @@ class DecodedStates:
     vehicles: list[VehicleState]
 
 
-_UINT32 = struct.Struct('<I')
-_STAMP = struct.Struct('<iI')
-_EPISODE_STEP = struct.Struct('<II')
 _LENGTH_COUNT = struct.Struct('<dI')
 _CLASS_LANE = struct.Struct('<Bb')
 _NUMBERS_INTENTION = struct.Struct('<6db')
-
-
-def _string(text: str) -> bytes:   # CDR: uint32 length with the NUL, the bytes, the NUL
-    data = text.encode()
-    return _UINT32.pack(len(data) + 1) + data + b'\0'
-
-
-def _pad(out: bytearray, alignment: int) -> None:
-    out += b'\0' * (-(len(out) - 4) % alignment)
 
 
 def encode_states(vehicles: Sequence[VehicleState], *, episode: int, step: int, step_length: float,
@@ -60,26 +45,25 @@ def encode_states(vehicles: Sequence[VehicleState], *, episode: int, step: int, 
     """The CDR bytes ``conversions.states_to_msg`` would give (stamp: the step's time), little endian."""
     stamp = stamp_of(step * step_length)
     out = bytearray(LITTLE_ENDIAN)
-    out += _STAMP.pack(stamp.sec, stamp.nanosec)
-    out += _string(frame_id)
-    _pad(out, 4)
-    out += _EPISODE_STEP.pack(episode, step)
-    _pad(out, 8)
+    out += STAMP.pack(stamp.sec, stamp.nanosec)
+    out += string(frame_id)
+    pad(out, 4)
+    out += EPISODE_STEP.pack(episode, step)
+    pad(out, 8)
     out += _LENGTH_COUNT.pack(step_length, len(vehicles))
     for v in vehicles:
-        _pad(out, 4)
-        out += _string(v.vehicle_id)
+        pad(out, 4)
+        out += string(v.vehicle_id)
         out += _CLASS_LANE.pack(CLASS_CODES[v.vehicle_class], v.lane_index)
-        _pad(out, 4)
-        out += _string(v.edge_id)
-        _pad(out, 8)
+        pad(out, 4)
+        out += string(v.edge_id)
+        pad(out, 8)
         out += _NUMBERS_INTENTION.pack(v.position, v.lateral_offset, v.speed, v.acceleration, v.length,
                                           v.lane_speed_limit, v.intention)
-        _pad(out, 4)
-        out += _string(v.route_target)
+        pad(out, 4)
+        out += string(v.route_target)
         out += b'\x01' if v.controlled else b'\x00'
-    out += b'\0' * (-len(out) % 4)
-    return bytes(out)
+    return finish(out)
 
 
 def decode_states(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
@@ -94,15 +78,13 @@ def decode_states(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
 
 def _decode(cdr: bytes, highway_edges: Collection[str]) -> DecodedStates:
     # offsets count from the start of the buffer; CDR aligns from the end of the 4-byte header
-    if cdr[:2] != LITTLE_ENDIAN[:2]:
-        raise MessageError(f'vehicle states: encapsulation {bytes(cdr[:2]).hex()} is not little-endian CDR '
-                           f'({LITTLE_ENDIAN[:2].hex()}), what every ROS 2 host here writes')
-    uint32, class_lane, numbers_intention = _UINT32.unpack_from, _CLASS_LANE.unpack_from, _NUMBERS_INTENTION.unpack_from
-    sec, nanosec = _STAMP.unpack_from(cdr, 4)
+    check_little_endian(cdr, 'vehicle states')
+    uint32, class_lane, numbers_intention = UINT32.unpack_from, _CLASS_LANE.unpack_from, _NUMBERS_INTENTION.unpack_from
+    sec, nanosec = STAMP.unpack_from(cdr, 4)
     (size,) = uint32(cdr, 12)
     offset = 16 + size
     offset += -offset % 4
-    episode, step = _EPISODE_STEP.unpack_from(cdr, offset)
+    episode, step = EPISODE_STEP.unpack_from(cdr, offset)
     offset += 8
     offset += -(offset - 4) % 8
     step_length, count = _LENGTH_COUNT.unpack_from(cdr, offset)

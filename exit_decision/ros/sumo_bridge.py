@@ -37,7 +37,8 @@ from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMM
                                       EVENT_QOS, STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare,
                                       Waiter, declare_config, declare_cpu_affinity, declare_thread_priority, describe,
                                       follow, run_node, take_waiting)
-from exit_decision.ros.conversions import commands_from_msg, episode_event_to_msg, stamp_of
+from exit_decision.ros.commands_cdr import decode_commands
+from exit_decision.ros.conversions import episode_event_to_msg, stamp_of
 from exit_decision.ros.states_cdr import encode_states
 from exit_decision.scenario.simulation import CommandError
 from exit_decision.traffic import CavCommand
@@ -92,7 +93,8 @@ class SumoBridge(Node):
         self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STATES_QOS)
         self.events_pub = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
         self.diagnostics = Diagnostics(self, 'sumo_bridge')
-        self.commands = self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS)
+        self.commands = self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS,
+                                                   raw=True)
         self.episode = 0
         self.published_step = -1            # step of the newest published states
         self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
@@ -109,13 +111,17 @@ class SumoBridge(Node):
 
     # --- commands -----------------------------------------------------------------------------
 
-    def on_commands(self, msg: CavCommandArray) -> None:
+    def on_commands(self, raw: bytes) -> None:
         """Accept (checked, clamped) the commands that can answer now; reject the rest whole: a
-        message with a bad field whatever its step, then one that cannot answer now."""
+        message with a bad field whatever its step, then one that cannot answer now. Decoded
+        from the CDR bytes (``commands_cdr``): the bridge waits on it."""
+        what = 'commands'
         try:
-            commands, clamped = self.limits.sanitize(commands_from_msg(msg))
+            msg = decode_commands(raw)
+            what = f'commands of step {msg.step}'
+            commands, clamped = self.limits.sanitize(msg.commands)
         except InputError as error:
-            self.diagnostics.reject('command_messages', f'commands of step {msg.step}', str(error))
+            self.diagnostics.reject('command_messages', what, str(error))
             return
         if msg.episode != self.episode:
             reason = f'episode {msg.episode} is not the current episode {self.episode}'
