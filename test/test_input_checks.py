@@ -1,5 +1,4 @@
 """Input checks against the scenario (ROS-free): what the nodes reject, clamp and follow."""
-import dataclasses
 import math
 
 import numpy as np
@@ -52,7 +51,7 @@ def test_a_bad_field_is_named(limits, change, field):
     good = make_vehicle('HV1_1', lane=1, position=100.0)
     limits.check([good])
     with pytest.raises(InputError, match=field):
-        limits.check([make_vehicle('HV1_0', position=50.0), dataclasses.replace(good, **change)])
+        limits.check([make_vehicle('HV1_0', position=50.0), good._replace(**change)])
 
 
 def test_message_level_checks(limits, project_config):
