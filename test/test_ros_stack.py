@@ -3,6 +3,7 @@ import math
 import os
 import signal
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,10 +18,12 @@ from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode)
+from exit_decision.ros.commands_cdr import encode_commands
 from exit_decision.ros.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
 from exit_decision.ros.stack_nodes import plan
+from exit_decision import traffic
 from exit_decision.scenario.geometry import RoadGeometry
 
 from ros_helpers import random_policies, small_config_dir, stop
@@ -360,12 +363,15 @@ def test_bridge_rejects_commands_it_cannot_apply_and_goes_on(setup):
             CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=1.0)]))
         assert test.spin_until(lambda: counters.get('rejected_commands', 0) >= 1, 20), counters
         assert test.spin_until(lambda: seen[-1].step == 5, 20), 'the bridge steps on to the next decision'
+        raw = encode_commands({'CAV_999': traffic.CavCommand(0, 1.0)}, episode=0, step=5,
+                              stamp=seen[-1].header.stamp, mode='AGGI', algorithm='test', policy='test')
+        publisher.publish(raw[:-8])                 # bytes that are no message: rejected whole, counted
         for acceleration in (math.nan, 3e38):      # the first is rejected whole, the bridge waits on
             publisher.publish(CavCommandArray(episode=0, step=5, commands=[
                 CavCommand(vehicle_id='CAV_999', lane_change=0, acceleration=acceleration)]))
         assert test.spin_until(lambda: seen[-1].step > 5, 20), 'the finite one is taken'
         assert test.spin_until(lambda: counters.get('clamped_commands', 0) == 1, 5), counters
-        assert counters['rejected_command_messages'] == 1 and counters.get('command_timeouts', 0) == 0, counters
+        assert counters['rejected_command_messages'] == 2 and counters.get('command_timeouts', 0) == 0, counters
         assert bridge.poll() is None
     finally:
         test.close()
@@ -855,3 +861,38 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
         path, onlookers = split
         assert printed == {'observer': onlookers, **{node.executable: path if node.decision_path else onlookers
                                                      for node in NODES}}, text
+
+
+def test_the_waiter_serves_what_is_ready_and_follows_entities_made_and_destroyed():
+    """The nodes' wait (common.Waiter) keeps its wait set between passes: a subscription's queue,
+    a triggered guard condition, a timer; one entity destroyed and another made (the same
+    counts), then one more (other counts): each pass waits on what the node has then. rclpy's
+    executor, which the Waiter calls for timers and services, is held off until the timer, so
+    the messages are the Waiter's own doing."""
+    from std_msgs.msg import String
+    test = ProbeNode('waiter_test')
+    executor, test.waiter.executor = test.waiter.executor, SimpleNamespace(spin_once=lambda timeout_sec: None)
+    try:
+        node, got, guarded, fired = test.node, [], [], []
+        first = node.create_subscription(String, '/waiter_test/a', lambda msg: got.append(('a', msg.data)), STREAM_QOS)
+        publisher = node.create_publisher(String, '/waiter_test/a', STREAM_QOS)
+        assert test.spin_until(lambda: first.get_publisher_count() == 1, 10)
+        for text in ('1', '2', '3'):
+            publisher.publish(String(data=text))
+        assert test.spin_until(lambda: len(got) == 3, 5) and got == [('a', '1'), ('a', '2'), ('a', '3')]
+        guard = node.create_guard_condition(lambda: guarded.append(True))
+        guard.trigger()
+        assert test.spin_until(lambda: guarded, 5)
+        node.destroy_subscription(first)   # and a new one: the same counts, another entity
+        node.create_subscription(String, '/waiter_test/b', lambda msg: got.append(('b', msg.data)), STREAM_QOS)
+        other = node.create_publisher(String, '/waiter_test/b', STREAM_QOS)
+        assert test.spin_until(lambda: other.get_subscription_count() == 1, 10)
+        other.publish(String(data='4'))
+        publisher.publish(String(data='lost'))   # nobody subscribes to a any more
+        assert test.spin_until(lambda: got[-1] == ('b', '4'), 5)
+        test.waiter.executor = executor
+        node.create_timer(0.01, lambda: fired.append(True))   # one entity more
+        assert test.spin_until(lambda: len(fired) >= 3, 5)
+        assert ('a', 'lost') not in got and guarded == [True]
+    finally:
+        test.close()

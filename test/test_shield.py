@@ -143,3 +143,17 @@ def test_lane_planner_is_a_config_switch(project_config, geometry):
     from exit_decision.agents.lane_planner import LanePlanner
     off = project_config.model_copy(update={'env': project_config.env.model_copy(update={'lane_planner': False})})
     assert LanePlanner.of(off, shield_with(project_config, geometry)) is None
+
+
+def test_the_leader_in_lane_0_before_an_exit_is_the_nearer_of_the_lane_and_the_ramp(project_config, geometry):
+    """A vehicle already on the ramp ahead (before the diverge) counts as a leader in lane 0; on
+    an equal gap the lane's own leader is the one taken, and lane 1 never looks at the ramp."""
+    shield = shield_with(project_config, geometry)
+    cav = make_vehicle('cav', 'CAV', lane=0, position=100.0)
+    lane_leader = make_vehicle('lane', lane=0, position=140.0)
+    for ramp_at, expected in ((130.0, 'ramp'), (140.0, 'lane'), (150.0, 'lane')):
+        ramp = make_vehicle('ramp', lane=0, position=ramp_at, edge='Exit_0', limit=15.0)
+        snapshot = TrafficSnapshot([cav, lane_leader, ramp])
+        assert shield.leader(cav, 0, snapshot).leader.vehicle_id == expected, ramp_at
+        assert shield.leader(cav, 0, snapshot, shield.around(cav, 0, snapshot)).leader.vehicle_id == expected
+    assert shield.leader(cav, 1, TrafficSnapshot([cav, ramp])).leader is None

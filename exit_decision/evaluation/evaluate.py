@@ -14,14 +14,14 @@ from exit_decision.graph import TrafficGraph
 from exit_decision.policy import GraphPolicy, PolicyController
 from exit_decision.reward import scalar, weight_input
 from exit_decision.shield_overrides import shield_overrides
-from exit_decision.traffic import VehicleState
+from exit_decision.traffic import TrafficSnapshot
 from exit_decision.visualization.episodes import EpisodeRecorder, ShowEpisodes
 
 
 class Controller(Protocol):
     name: str
 
-    def decide(self, graph: TrafficGraph, vehicles: Sequence[VehicleState]) -> Decision: ...
+    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision: ...
 
 
 @dataclass

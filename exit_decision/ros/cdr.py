@@ -1,7 +1,7 @@
 """The pieces of plain CDR (what rmw_fastrtps writes) that the message codecs of the decision
 path share (``states_cdr``, ``commands_cdr``): a 4-byte encapsulation header, then each field
-aligned to its size (at most 8) from the end of that header, strings as a uint32 length with
-the NUL then the bytes and the NUL, the whole padded to 4 bytes. Little endian only: every
+aligned to its size (at most 8) from the end of that header, a string as a uint32 length
+counting its NUL, its bytes, the NUL, the whole padded to 4 bytes. Little endian only: every
 ROS 2 host here writes it, and the decoders refuse the other order.
 """
 from __future__ import annotations

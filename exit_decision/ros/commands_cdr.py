@@ -10,7 +10,6 @@ tests check both directions against rclpy's serialisation.
 """
 from __future__ import annotations
 
-import math
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -19,7 +18,7 @@ from builtin_interfaces.msg import Time
 
 from exit_decision.ros.cdr import EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish, pad, \
     read_string, string
-from exit_decision.ros.conversions import MessageError
+from exit_decision.ros.conversions import MessageError, check_vehicle_entry
 from exit_decision.traffic import CavCommand
 
 _LANE_CHANGE = struct.Struct('<b')
@@ -82,10 +81,7 @@ def decode_commands(cdr: bytes) -> DecodedCommands:
             offset += -offset % 4
             (acceleration,) = _ACCELERATION.unpack_from(cdr, offset)
             offset += 4
-            if vehicle_id in commands:
-                raise MessageError(f'commands: {vehicle_id!r} is listed twice')
-            if not math.isfinite(acceleration):
-                raise MessageError(f'commands: {vehicle_id!r} acceleration is not finite')
+            check_vehicle_entry(vehicle_id, (acceleration,), commands, 'commands')
             commands[vehicle_id] = CavCommand(lane_change, acceleration)
     except (struct.error, IndexError, UnicodeDecodeError) as error:
         raise MessageError(f'commands: not a CavCommandArray in CDR ({error})') from None

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import array
 import math
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Container, Iterable, Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -142,6 +142,8 @@ def graph_from_msg(msg: GraphMsg, *, expected_nodes: int | None = None,
 
 def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: int, stamp: Time,
                     mode: str, algorithm: str, policy: str) -> CavCommandArray:
+    """The message object (for who needs one: tests, bag writers); the decision node publishes
+    the same message as CDR bytes (``commands_cdr.encode_commands``)."""
     msg = CavCommandArray(episode=episode, step=step, mode=mode, algorithm=algorithm, policy=policy,
                           commands=[CavCommandMsg(vehicle_id=vid, lane_change=c.lane_change,
                                                   acceleration=c.acceleration)
@@ -151,14 +153,20 @@ def commands_to_msg(commands: Mapping[str, CavCommand], *, episode: int, step: i
     return msg
 
 
+def check_vehicle_entry(vehicle_id: str, accelerations: Iterable[float], taken: Container[str], what: str) -> None:
+    """MessageError unless a per-vehicle entry names a vehicle not ``taken`` yet, with every
+    acceleration finite (commands and shield overrides, from messages or CDR bytes)."""
+    if vehicle_id in taken:
+        raise MessageError(f'{what}: {vehicle_id!r} is listed twice')
+    if not all(math.isfinite(value) for value in accelerations):
+        raise MessageError(f'{what}: {vehicle_id!r} acceleration is not finite')
+
+
 def _by_vehicle(entries, what: str, accelerations: Callable, decode: Callable) -> dict:
-    """Entries of a per-vehicle list by vehicle id: each vehicle once, every acceleration finite."""
+    """Entries of a per-vehicle list by vehicle id (``check_vehicle_entry``)."""
     out = {}
     for entry in entries:
-        if entry.vehicle_id in out:
-            raise MessageError(f'{what}: {entry.vehicle_id!r} is listed twice')
-        if not all(math.isfinite(value) for value in accelerations(entry)):
-            raise MessageError(f'{what}: {entry.vehicle_id!r} acceleration is not finite')
+        check_vehicle_entry(entry.vehicle_id, accelerations(entry), out, what)
         out[entry.vehicle_id] = decode(entry)
     return out
 

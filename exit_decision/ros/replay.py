@@ -129,7 +129,8 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         controller = controllers[path]
         if controller.policy.conditioned:
             controller.weights = weight_input(config.mode(mode_name))
-        decision = controller.decide(graphs[key], TrafficSnapshot(states_from_msg(states[key], config.scenario.road.names.sections)))
+        vehicles = states_from_msg(states[key], config.scenario.road.names.sections)
+        decision = controller.decide(graphs[key], TrafficSnapshot(vehicles))
         report.decisions += 1
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1

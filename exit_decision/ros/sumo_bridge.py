@@ -15,7 +15,9 @@ Commands are checked on arrival. A message is rejected whole, counted on /diagno
 changes nothing (in synchronous mode the bridge goes on waiting for a good answer) when it
 cannot answer now: another episode, or (synchronous) any step but the one waited on,
 (realtime) a step not after the last accepted one or after the current one. So is a message
-with a non-finite acceleration, a lane change outside the grid or a vehicle twice. Finite
+with a non-finite acceleration, a lane change outside the grid or a vehicle twice, and bytes
+that are no little-endian CDR CavCommandArray with single NUL-terminated UTF-8 strings (the
+bridge decodes the bytes itself, ``commands_cdr``). Finite
 accelerations outside the action grid are clamped to it and counted. A command for a vehicle
 that is not a controlled CAV on the road is rejected alone; the step goes on.
 """
