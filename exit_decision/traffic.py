@@ -24,11 +24,10 @@ def vehicle_id_of(vehicle_class: str, serial: int) -> str:
     return f'{vehicle_class}_{serial}'
 
 
-class VehicleState(NamedTuple):
+@dataclass(frozen=True, slots=True)
+class VehicleState:
     """One vehicle at one step; mirrors exit_decision_msgs/VehicleState, plus ``on_highway``,
-    which the road gives (the message carries only the edge id). Immutable; a copy with other
-    fields is ``_replace(...)``. A tuple: every step makes one per vehicle, in the simulation
-    and in each decoder, and a frozen dataclass took 2.7 us to make against 0.4 us."""
+    which the road gives (the message carries only the edge id)."""
     vehicle_id: str
     vehicle_class: str          # HV1 | HV2 | HV3 | CAV
     lane_index: int             # 0 = rightmost; 0 on a ramp

@@ -1,4 +1,5 @@
 """Input checks against the scenario (ROS-free): what the nodes reject, clamp and follow."""
+import dataclasses
 import math
 
 import numpy as np
@@ -51,7 +52,7 @@ def test_a_bad_field_is_named(limits, change, field):
     good = make_vehicle('HV1_1', lane=1, position=100.0)
     limits.check([good])
     with pytest.raises(InputError, match=field):
-        limits.check([make_vehicle('HV1_0', position=50.0), good._replace(**change)])
+        limits.check([make_vehicle('HV1_0', position=50.0), dataclasses.replace(good, **change)])
 
 
 def test_message_level_checks(limits, project_config):

@@ -1,4 +1,5 @@
 """Integration tests of the ROS 2 stack: nodes in their own processes, on loopback only."""
+import dataclasses
 import math
 import os
 import signal
@@ -425,7 +426,7 @@ def bad_messages(latest: VehicleStateArray) -> list:
     # bad fields on a decision step the gates accept as next (the second after this one's: within
     # their gap of two decision steps, still ahead of the stack when this process lags it by up to
     # a decision interval), so the field checks, not the sequence, refuse them
-    states = [states_to_msg([vehicles[0]._replace(**change), *vehicles[1:]], episode=episode,
+    states = [states_to_msg([dataclasses.replace(vehicles[0], **change), *vehicles[1:]], episode=episode,
                             step=step - step % 5 + 10, step_length=0.1, frame_id='fuzz')
               for change in ({'lane_index': 127}, {'lane_index': -128}, {'lane_index': 3}, {'lane_index': -1},
                              {'speed': math.nan}, {'position': 3e38})]

@@ -1,4 +1,5 @@
 """The scene as markers, and `exit-decision show` on a small bag: what a user looks at."""
+import dataclasses
 import math
 
 import numpy as np
@@ -28,13 +29,14 @@ def snapshot():
             make_vehicle('CAV_1', 'CAV', lane=2, position=90.0),
             make_vehicle('HV1_0', 'HV1', lane=0, position=120.0),
             make_vehicle('HV2_0', 'HV2', lane=1, position=40.0),
-            make_vehicle('HV3_0', 'HV3', lane=0, position=190.0, edge='Exit_0')._replace(route_target='Exit_0')]
+            dataclasses.replace(make_vehicle('HV3_0', 'HV3', lane=0, position=190.0, edge='Exit_0'),
+                                route_target='Exit_0')]
 
 
 def test_markers_of_a_snapshot_show_each_vehicle_in_its_class_colour_and_delete_departed_ones(layout):
     vehicles = snapshot()
     hv3_end = layout.ramps['Exit_0'].end
-    vehicles[-1] = vehicles[-1]._replace(position=hv3_end - 1.0)
+    vehicles[-1] = dataclasses.replace(vehicles[-1], position=hv3_end - 1.0)
     frames = FrameBuilder(layout, STEP, episode=3)
     frames.decide({'CAV_0': CavCommand(+1, -6.0), 'CAV_1': CavCommand(0, 2.0)}, mode='AGGP')
     frames.graph(['CAV_0', '', 'HV1_0'], np.array([[1, 0, 1], [0, 0, 0], [1, 0, 1]]))
@@ -129,8 +131,8 @@ def write_fixture_bag(path, layout, lane_shift=0):
         connections = {topic: writer.add_connection(topic, DEFAULT_TOPICS[topic], typestore=store)
                        for topic in (STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC)}
         for step in range(40):
-            states = [v._replace(position=v.position + 20.0 * STEP * step, lane_index=lane_shift
-                                  + (2 if v.vehicle_id == 'CAV_0' and step > 12 else v.lane_index))
+            states = [dataclasses.replace(v, position=v.position + 20.0 * STEP * step, lane_index=lane_shift
+                                          + (2 if v.vehicle_id == 'CAV_0' and step > 12 else v.lane_index))
                       for v in snapshot() if not (v.vehicle_id == 'HV1_0' and step >= 30)]
             vehicles.update({v.vehicle_id: v.vehicle_class for v in states})
             stamp = 1_000_000_000 + step * 10_000_000
@@ -312,7 +314,7 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
         step = first_markers(test, publisher, arrays)
         test.spin_until(lambda: False, 1.5)   # every array of the first steps, and the diagnostics after them
         drawn, before = len(arrays), dict(counters)
-        bad_lane = [v._replace(lane_index=127) if v.vehicle_id == 'CAV_0' else v for v in snapshot()]
+        bad_lane = [dataclasses.replace(v, lane_index=127) if v.vehicle_id == 'CAV_0' else v for v in snapshot()]
         for episode, at, vehicles in ((1000, step + 1, snapshot()[:1]), (0, step + 1, bad_lane),
                                       (0, step, snapshot()[:2])):
             publisher.publish(states_to_msg(vehicles, episode=episode, step=at, step_length=STEP))
@@ -399,8 +401,9 @@ def write_events_and_overrides(path, layout, p_collision):
                     continue
                 lane = 2 if v.vehicle_id == 'CAV_0' and step > 12 else 1 if v.vehicle_id == 'CAV_1' and step > 26 \
                     else v.lane_index
-                states.append(v._replace(position=v.position + 20.0 * STEP * step, lane_index=lane,
-                                          controlled=v.controlled and not (v.vehicle_id == 'CAV_1' and step >= 24)))
+                states.append(dataclasses.replace(v, position=v.position + 20.0 * STEP * step, lane_index=lane,
+                                                  controlled=v.controlled and not (v.vehicle_id == 'CAV_1'
+                                                                                   and step >= 24)))
             stamp = 1_000_000_000 + step * 10_000_000
             writer.write(connections[STATES_TOPIC], stamp, serialize_message(
                 states_to_msg(states, episode=0, step=step, step_length=STEP)))

@@ -17,6 +17,7 @@ If every action is masked, the strongest keep-lane braking is allowed (the safes
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -164,6 +165,7 @@ class Shield:
             actions[vehicle.vehicle_id], masks[vehicle.vehicle_id] = action, mask
             lane_change = int(self.grid.lane_change_of[action])
             if lane_change and self.config.gap_reservation:
-                snapshot = snapshot.with_vehicle(vehicle._replace(
-                    vehicle_id=f'{vehicle.vehicle_id}#reserved', lane_index=vehicle.lane_index + lane_change))
+                snapshot = snapshot.with_vehicle(dataclasses.replace(
+                    vehicle, vehicle_id=f'{vehicle.vehicle_id}#reserved',
+                    lane_index=vehicle.lane_index + lane_change))
         return Decision(actions, masks, refused)
