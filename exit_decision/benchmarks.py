@@ -279,7 +279,7 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
         '  resident memory [MB] at the first command -> after the steps: ' + ', '.join(
             f'{name} {memory_at_first_command[name]:.0f} -> {memory_at_end[name]:.0f}'
             for name in memory_at_end if name in memory_at_first_command),
-        '  cores of their threads: ' + ', '.join(f'{name} {cores}' for name, cores in cores_used.items())])
+        '  cores of their threads: ' + ', '.join(f'{name} {allowed}' for name, allowed in cores_used.items())])
 
 
 def proc_files(launcher, file: str) -> dict[str, str]:

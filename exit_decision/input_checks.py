@@ -121,7 +121,7 @@ class StateLimits:
             raise _bad_field(v, 'vehicle_class', f'a class of the scenario ({", ".join(self.class_counts)})')
         if (v.vehicle_id, v.vehicle_class) not in self._ids:
             raise _bad_field(v, 'vehicle_id', f'<class>_<n> with its class {v.vehicle_class} and n below '
-                                       f'{self.class_counts[v.vehicle_class]}')
+                                              f'{self.class_counts[v.vehicle_class]}')
         if (v.edge_id, v.lane_index) not in self.lanes:
             raise InputError(f'vehicle {v.vehicle_id!r}: lane_index {v.lane_index} on edge_id {v.edge_id!r} '
                              f'is no lane of the road')

@@ -110,8 +110,8 @@ def cores(given: Mapping[str, object]) -> tuple[list[int], list[int]] | None:
     cores this process may use; None when the nodes are not split (``cpu_split`` false, 1 core,
     or a real-time ``thread_priority``: on its share of the cores the synchronous path would
     keep them busy, and the kernel's reservation for their normal tasks would stop it for tens
-    of ms; ``ros/cpu_affinity.py``). The
-    launcher's and the benchmark's own helper nodes are onlookers too."""
+    of ms; ``ros/cpu_affinity.py``). The launcher's and the benchmark's own helper nodes are
+    onlookers too."""
     return _split(_texts(given))
 
 

@@ -17,8 +17,8 @@ cannot answer now: another episode, or (synchronous) any step but the one waited
 (realtime) a step not after the last accepted one or after the current one. So is a message
 with a non-finite acceleration, a lane change outside the grid or a vehicle twice, and bytes
 that are no little-endian CDR CavCommandArray with single NUL-terminated UTF-8 strings (the
-bridge decodes the bytes itself, ``commands_cdr``). Finite
-accelerations outside the action grid are clamped to it and counted. A command for a vehicle
+bridge decodes the bytes itself, ``commands_cdr``). Finite accelerations outside the action
+grid are clamped to it and counted. A command for a vehicle
 that is not a controlled CAV on the road is rejected alone; the step goes on.
 """
 from __future__ import annotations
