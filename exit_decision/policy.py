@@ -52,15 +52,11 @@ def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) ->
     temporary.replace(path)
 
 
-@torch.inference_mode()   # no autograd bookkeeping at all (the values leave as numpy): 0.29 -> 0.21 ms a call
 def q_values(network: GraphQNetwork, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
     """(N, A) Q values of every row of one graph in one forward pass (rows that are not
     CAVs are computed but meaningless); ``weights``: the mode's six weights, for a
     mode-conditioned network."""
-    features = torch.from_numpy(np.ascontiguousarray(graph.features)).unsqueeze(0)
-    adjacency = torch.from_numpy(np.ascontiguousarray(graph.adjacency)).unsqueeze(0)
-    w = None if weights is None else torch.as_tensor(weights, dtype=torch.float32).unsqueeze(0)
-    return network(features, adjacency, w)[0].numpy()
+    return network.one_graph(graph.features, graph.adjacency, weights)
 
 
 class GraphPolicy:

