@@ -33,34 +33,55 @@ def test_q_network_shapes_and_that_n_is_free():
     torch.testing.assert_close(net.cav_q_values(features, adjacency, rows), net(features, adjacency)[rows[:, 0], rows[:, 1]])
 
 
-@pytest.mark.parametrize('shape', [
-    dict(),                                                             # GQN / MDGQN (paper 000)
-    dict(num_weights=6),                                                # mode-conditioned
-    dict(encoder=(128, 128), gcn=128, head=(128,), num_weights=6),     # paper 001's layers, conditioned
-    dict(dueling=True, gcn=0),                                          # Dueling DQN, no graph
-    dict(gcn=0, adjacency_input=True, num_nodes=60, num_weights=6),     # NGRL
-    dict(encoder=(), head=()),                                          # no hidden layers at all
-], ids=['gqn', 'conditioned', 'paper001', 'dueling', 'ngrl', 'bare'])
+def _shapes() -> dict[str, dict]:
+    """The network of every method of config/training.yaml, plain and mode-conditioned, and the
+    corners the methods do not reach (no hidden layer at all; no encoder; dueling with a GCN)."""
+    from exit_decision.config import default_config_dir, load_project
+    shapes = {}
+    for name, method in load_project(default_config_dir()).training.methods.items():
+        net = method.network
+        shape = dict(encoder=tuple(net.encoder), gcn=net.gcn, head=tuple(net.head), dueling=net.dueling,
+                     adjacency_input=net.adjacency_input, num_nodes=60 if net.adjacency_input else 0)
+        shapes[name] = shape
+        shapes[name + '_conditioned'] = dict(shape, num_weights=6)
+    shapes.update(bare=dict(encoder=(), head=()), no_encoder_conditioned=dict(encoder=(), num_weights=6),
+                  dueling_gcn=dict(dueling=True, num_weights=6))
+    return shapes
+
+
+@pytest.mark.parametrize('shape', list(_shapes().values()), ids=list(_shapes()))
 def test_one_graph_inference_is_bit_identical_to_the_forward_pass(shape):
     """The decision node, evaluation and acting decide with ``one_graph``, training learns with
     ``forward``: a decision must not depend on which ran (nor on the row count: N = 3 takes
-    torch's small-matrix kernels)."""
+    torch's small-matrix kernels), on the call before, or on when the weights last changed."""
     torch.manual_seed(0)
     net = GraphQNetwork(NetworkShape(num_features=20, num_actions=81, **shape))
     rng = np.random.default_rng(0)
-    for n in ((60,) if shape.get('adjacency_input') else (60, 3)):
+
+    def expected(features, adjacency, w):
+        return net(torch.from_numpy(features)[None], torch.from_numpy(adjacency)[None],
+                   None if w is None else torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
+    kept = []
+    for n in ((60,) if shape.get('adjacency_input') else (60, 3, 60)):
         for weights in (np.array([0.25, 0.35, 0.15, 0.25, 0.6, 0.4]), np.array([0.2, 0.2, 0.25, 0.35, 0.4, 0.6])):
             features = rng.normal(size=(n, 20)).astype(np.float32)
             adjacency = (rng.random((n, n)) < 0.2).astype(np.uint8)
             adjacency = np.maximum(adjacency, adjacency.T) | np.eye(n, dtype=np.uint8)
             adjacency[n - 1] = adjacency[:, n - 1] = 0                 # an absent vehicle: no edge at all
             w = weights if net.conditioned else None
-            expected = net(torch.from_numpy(features)[None], torch.from_numpy(adjacency)[None],
-                           None if w is None else torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
-            assert np.array_equal(net.one_graph(features, adjacency, w), expected)
+            q = net.one_graph(features, adjacency, w)
+            assert np.array_equal(q, expected(features, adjacency, w))
+            kept.append((q, q.copy()))
+    assert all(np.array_equal(q, copy) for q, copy in kept), 'a later call changed Q values already returned'
+    with torch.no_grad():   # weights changed in place (an optimizer step, load_state_dict) after the first call
+        for parameter in net.parameters():
+            parameter.add_(0.01)
+    assert np.array_equal(net.one_graph(features, adjacency, w), expected(features, adjacency, w))
     if net.conditioned:
         with pytest.raises(ValueError, match='needs the mode weights'):
             net.one_graph(features, adjacency)
+    with pytest.raises(ValueError, match='do not fit'):
+        net.one_graph(features, adjacency.astype(np.float32), w)
 
 
 def test_an_isolated_row_is_not_influenced_by_others():

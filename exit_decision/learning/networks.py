@@ -70,11 +70,20 @@ def inverse_sqrt_degree(degree: torch.Tensor) -> torch.Tensor:
     return torch.where(degree > 0, degree.clamp(min=1e-12).rsqrt(), torch.zeros_like(degree))
 
 
+def scaled_adjacency(adjacency: torch.Tensor, inv_sqrt: torch.Tensor) -> torch.Tensor:
+    """D^-1/2 A D^-1/2 from the rows' D^-1/2 (``inverse_sqrt_degree``)."""
+    return inv_sqrt.unsqueeze(-1) * adjacency * inv_sqrt.unsqueeze(-2)
+
+
 def normalize_adjacency(adjacency: torch.Tensor) -> torch.Tensor:
     """D^-1/2 A D^-1/2 for a batch (B, N, N); rows with no edge (absent vehicles) stay zero."""
     adjacency = adjacency.float()
-    inv_sqrt = inverse_sqrt_degree(adjacency.sum(-1))
-    return inv_sqrt.unsqueeze(-1) * adjacency * inv_sqrt.unsqueeze(-2)
+    return scaled_adjacency(adjacency, inverse_sqrt_degree(adjacency.sum(-1)))
+
+
+def dueling_q(value: torch.Tensor, advantage: torch.Tensor) -> torch.Tensor:
+    """Q = V + A - mean A (Dueling DQN)."""
+    return value + advantage - advantage.mean(-1, keepdim=True)
 
 
 class GraphConvolution(nn.Module):
@@ -94,13 +103,17 @@ class GraphQNetwork(nn.Module):
         super().__init__()
         self.shape = shape
         w = shape.num_weights
-        inputs = shape.num_features + w + (shape.num_nodes if shape.adjacency_input else 0)
-        self.encoder = mlp([inputs, *shape.encoder])
-        width = shape.encoder[-1] if shape.encoder else inputs
+        #: a row's input: its features [, its adjacency row] [, the weights]
+        self.inputs = shape.num_features + (shape.num_nodes if shape.adjacency_input else 0) + w
+        self.encoder = mlp([self.inputs, *shape.encoder])
+        #: a row's code out of the encoder
+        self.width = shape.encoder[-1] if shape.encoder else self.inputs
         if shape.gcn:
-            self.gcn = GraphConvolution(width, shape.gcn)
-        self.head = mlp([width + shape.gcn + w, *shape.head], final_activation=True)
-        last = shape.head[-1] if shape.head else width + shape.gcn + w
+            self.gcn = GraphConvolution(self.width, shape.gcn)
+        #: the head's input: the code, the neighbourhood's (GCN) [, the weights]
+        self.head_inputs = self.width + shape.gcn + w
+        self.head = mlp([self.head_inputs, *shape.head], final_activation=True)
+        last = shape.head[-1] if shape.head else self.head_inputs
         if shape.dueling:
             self.value, self.advantage = nn.Linear(last, 1), nn.Linear(last, shape.num_actions)
         else:   # the output layer continues ``head`` (its state_dict keys stay those of earlier checkpoints)
@@ -111,12 +124,15 @@ class GraphQNetwork(nn.Module):
     def conditioned(self) -> bool:
         return self.shape.num_weights > 0
 
+    def check_weights(self, weights) -> None:
+        if self.conditioned and weights is None:
+            raise ValueError('a mode-conditioned network needs the mode weights')
+
     def _with_weights(self, x: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
         """x (B, N, D) with each batch element's weights (B, W) appended to every row."""
+        self.check_weights(weights)
         if not self.conditioned:
             return x
-        if weights is None:
-            raise ValueError('a mode-conditioned network needs the mode weights')
         return torch.cat([x, weights[:, None, :].expand(-1, x.shape[1], -1).to(x.dtype)], dim=-1)
 
     def embed(self, features: torch.Tensor, adjacency: torch.Tensor,
@@ -135,8 +151,7 @@ class GraphQNetwork(nn.Module):
         hidden = self.head(embedded)
         if not self.shape.dueling:
             return hidden
-        advantage = self.advantage(hidden)
-        return self.value(hidden) + advantage - advantage.mean(-1, keepdim=True)
+        return dueling_q(self.value(hidden), self.advantage(hidden))
 
     def forward(self, features: torch.Tensor, adjacency: torch.Tensor,
                 weights: torch.Tensor | None = None) -> torch.Tensor:
@@ -144,9 +159,9 @@ class GraphQNetwork(nn.Module):
 
     @torch.inference_mode()
     def one_graph(self, features: np.ndarray, adjacency: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        """``forward`` of one graph (features (N, F) float32, adjacency (N, N) 0/1 integers),
-        for greedy decisions: the (N, A) Q values, bit-identical to ``forward``'s, at about
-        half its cost (``OneGraphForward``)."""
+        """``forward`` of one graph (features (N, F) float32, adjacency (N, N) of 0/1 integers,
+        as ``TrafficGraph`` has them), for greedy decisions: the (N, A) Q values, bit-identical
+        to ``forward``'s, with less overhead a call (``OneGraphForward``)."""
         if self._one_graph is None:
             self._one_graph = OneGraphForward(self)
         return self._one_graph(features, adjacency, weights)
@@ -163,45 +178,48 @@ class OneGraphForward:
     """``GraphQNetwork.forward`` for one graph at a time, without its per-call overhead (a
     decision of the node, evaluation, acting in training: one graph, no gradient). The same
     operations on the same values in the same order, so the Q values are bit-identical (a
-    test checks every network shape), but: no module calls (the layers' ``functional``
-    operations directly), the rows' inputs and the head's input written into buffers kept per
-    row count instead of expanded and concatenated anew, and D^-1/2 looked up per degree
-    (computed once by ``inverse_sqrt_degree`` itself). The shipped network (N = 60): 0.17-0.19
-    ms a call against 0.24-0.35 ms. One caller at a time: the buffers are shared."""
+    test compares them for the shapes of every method of config/training.yaml and more), but:
+    no module calls (the layers' ``functional`` operations directly), the rows' inputs and the
+    head's inputs written into buffers kept per row count instead of expanded and concatenated
+    anew, and D^-1/2 looked up per degree (computed once by ``inverse_sqrt_degree`` itself).
+    The shipped network (N = 60), back to back: 0.16-0.23 ms a call against 0.24-0.35 ms. One
+    caller at a time: the buffers are shared (the decision node warms a policy up in its
+    loading thread and decides in the executor's, one after the other)."""
 
     def __init__(self, network: GraphQNetwork):
         self.network, self.shape = network, network.shape
         for layer in (*network.encoder, *network.head):
             if not isinstance(layer, nn.Linear | nn.ReLU):
                 raise TypeError(f'OneGraphForward knows Linear and ReLU layers, not {type(layer).__name__}')
-        self.width = (self.shape.encoder[-1] if self.shape.encoder else
-                      self.shape.num_features + self.shape.num_weights +
-                      (self.shape.num_nodes if self.shape.adjacency_input else 0))
         self.buffers: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
     def _buffers(self, rows: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The inputs (rows, F [+ N] [+ W]) and the head's inputs (rows, width + gcn [+ W]), and
-        D^-1/2 of every degree a graph of ``rows`` rows can have."""
+        """The inputs and the head's inputs of ``rows`` rows, and D^-1/2 of every degree a
+        graph of ``rows`` rows can have."""
         if rows not in self.buffers:
-            shape = self.shape
-            inputs = shape.num_features + (shape.num_nodes if shape.adjacency_input else 0) + shape.num_weights
-            self.buffers[rows] = (torch.empty(rows, inputs), torch.empty(rows, self.width + shape.gcn + shape.num_weights),
+            network = self.network
+            self.buffers[rows] = (torch.empty(rows, network.inputs), torch.empty(rows, network.head_inputs),
                                   inverse_sqrt_degree(torch.arange(rows + 1, dtype=torch.float32)))
         return self.buffers[rows]
 
     @staticmethod
-    def _layers(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    def _run(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        """``layers(x)``: each Linear and ReLU as its module's ``forward`` computes it."""
         for layer in layers:
             x = functional.linear(x, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else torch.relu(x)
         return x
 
     def __call__(self, features: np.ndarray, adjacency: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
         network, shape = self.network, self.shape
-        if network.conditioned and weights is None:
-            raise ValueError('a mode-conditioned network needs the mode weights')
+        network.check_weights(weights)
+        rows, f = len(features), shape.num_features
+        if (features.shape != (rows, f) or adjacency.shape != (rows, rows) or adjacency.dtype.kind not in 'biu'
+                or (shape.adjacency_input and rows != shape.num_nodes)):
+            raise ValueError(f'one graph: features {features.shape} and adjacency {adjacency.shape} '
+                             f'({adjacency.dtype}) do not fit; expected (N, {f}) float32 and (N, N) integers'
+                             + (f', N = {shape.num_nodes}' if shape.adjacency_input else ''))
         features, adjacency = torch.from_numpy(features), torch.from_numpy(adjacency)
-        inputs, head_inputs, inverse_sqrt = self._buffers(len(features))
-        f = shape.num_features
+        inputs, head_inputs, inverse_sqrt = self._buffers(rows)
         inputs[:, :f] = features
         if shape.adjacency_input:
             inputs[:, f:f + shape.num_nodes] = adjacency
@@ -209,18 +227,17 @@ class OneGraphForward:
             w = torch.as_tensor(weights, dtype=torch.float32)
             inputs[:, -shape.num_weights:] = w
             head_inputs[:, -shape.num_weights:] = w
-        encoded = self._layers(network.encoder, inputs)
-        head_inputs[:, :self.width] = encoded
+        encoded = self._run(network.encoder, inputs)
+        head_inputs[:, :network.width] = encoded
         if shape.gcn:
-            d = inverse_sqrt[adjacency.sum(-1)]
-            normalized = d.unsqueeze(-1) * adjacency * d.unsqueeze(-2)
+            normalized = scaled_adjacency(adjacency, inverse_sqrt[adjacency.sum(-1)])
             linear = network.gcn.linear
             aggregated = torch.bmm(normalized.unsqueeze(0),
                                    functional.linear(encoded, linear.weight, linear.bias).unsqueeze(0))[0]
-            head_inputs[:, self.width:self.width + shape.gcn] = torch.relu(aggregated)
-        hidden = self._layers(network.head, head_inputs)
+            head_inputs[:, network.width:network.width + shape.gcn] = torch.relu(aggregated)
+        hidden = self._run(network.head, head_inputs)
         if shape.dueling:
-            advantage = functional.linear(hidden, network.advantage.weight, network.advantage.bias)
-            hidden = (functional.linear(hidden, network.value.weight, network.value.bias)
-                      + advantage - advantage.mean(-1, keepdim=True))
+            value, advantage = network.value, network.advantage
+            hidden = dueling_q(functional.linear(hidden, value.weight, value.bias),
+                               functional.linear(hidden, advantage.weight, advantage.bias))
         return hidden.numpy()
