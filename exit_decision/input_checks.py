@@ -168,7 +168,8 @@ class CommandLimits:
                 raise InputError(f'{vehicle_id!r}: acceleration {command.acceleration!r} is not finite')
             acceleration = min(max(command.acceleration, self.acceleration_min), self.acceleration_max)
             clamped += acceleration != command.acceleration
-            result[vehicle_id] = CavCommand(command.lane_change, acceleration)
+            result[vehicle_id] = command if acceleration == command.acceleration else \
+                CavCommand(command.lane_change, acceleration)
         return result, clamped
 
 

@@ -75,7 +75,8 @@ class GraphBuilderNode(Node):
         if states is None:
             return
         episode, step = states.episode, states.step
-        snapshot = TrafficSnapshot(states.vehicles)   # one neighbour index for the graph and the decision
+        # one neighbour index for the graph and the decision (alone, the builder makes one if its features need it)
+        snapshot = TrafficSnapshot(states.vehicles) if self.decision is not None else None
         try:
             graph = self.builder.build(states.vehicles, snapshot)
         except (GraphInputError, GraphCapacityError) as error:
