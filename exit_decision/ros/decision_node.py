@@ -330,8 +330,7 @@ class DecisionNode(Node):
             return
         (graph, stamp), vehicles = self.graphs.pop(key), self.states.pop(key)
         self.forget_before(key)
-        if key > self.last_decided:   # not a step decided already (``decide`` refuses those): worth a snapshot
-            self.decide(key, graph, TrafficSnapshot(vehicles), stamp)
+        self.decide(key, graph, TrafficSnapshot(vehicles), stamp)
 
     def decide(self, key: tuple[int, int], graph: TrafficGraph, snapshot: TrafficSnapshot, stamp) -> None:
         """Decide the step ``key`` = (episode, step) from its graph and checked states, and
