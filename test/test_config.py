@@ -111,3 +111,12 @@ def test_broken_yaml_names_the_file(config_copy):
     (config_copy / 'modes.yaml').write_text('modes: [unclosed\n')
     with pytest.raises(ConfigError, match='modes.yaml: not valid YAML'):
         load_project(config_copy)
+
+
+def test_yaml_that_would_run_code_is_refused(config_copy, tmp_path):
+    """The (C) loader stays a safe one: a Python tag is an error, not a call."""
+    marker = tmp_path / 'ran'
+    (config_copy / 'modes.yaml').write_text(f'modes: !!python/object/apply:os.system ["touch {marker}"]\n')
+    with pytest.raises(ConfigError, match='modes.yaml: not valid YAML'):
+        load_project(config_copy)
+    assert not marker.exists()
