@@ -1,22 +1,26 @@
-"""The README's real Jazzy install path: `colcon build --paths <repo> <repo>/msg_defs --merge-install`
+"""The README's real Jazzy install path: `rosdep install --from-paths <repo> <repo>/msg_defs` with the
+shipped rosdep source (rosdep.yaml), `colcon build --paths <repo> <repo>/msg_defs --merge-install`
 into a scratch workspace, then every node started from that install with nothing of the package
 from the project venv: another interpreter prefix (as /usr is on a Jazzy machine), the
 workspace's own local_setup.bash, config and policies through the ament index.
 
-colcon comes from requirements-colcon.txt, installed once with `pip install --target` beside the
-venv (it would downgrade the venv's setuptools) into build/test_colcon/ (git-ignored). The
+colcon and rosdep come from requirements-colcon.txt, installed once with `pip install --target`
+beside the venv (colcon would downgrade the venv's setuptools) into build/test_colcon/ (git-ignored). The
 workspace is kept there too and rebuilt only when its inputs change (msg_defs: from scratch;
 only the Python package: that package alone), so a second run takes seconds, not minutes.
 """
 import hashlib
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
+from xml.etree import ElementTree
 
 import pytest
+import yaml
 
 from exit_decision.ros.launcher import ros_args
 
@@ -40,7 +44,7 @@ def digest(patterns: list[str]) -> str:
     return h.hexdigest()[:16]
 
 
-def colcon_tools() -> Path:
+def jazzy_tools() -> Path:
     """requirements-colcon.txt installed with --target, once per version of that file."""
     target = CACHE / f'colcon-{digest(["requirements-colcon.txt"])}'
     if target.is_dir():
@@ -54,7 +58,7 @@ def colcon_tools() -> Path:
         reachable = subprocess.run([sys.executable, '-m', 'pip', 'index', 'versions', 'colcon-core'],
                                    capture_output=True, text=True, timeout=120, check=False).returncode == 0
         if not reachable:
-            pytest.skip('PyPI is unreachable: colcon (requirements-colcon.txt) cannot be installed')
+            pytest.skip('PyPI is unreachable: colcon and rosdep (requirements-colcon.txt) cannot be installed')
         pytest.fail(f'installing requirements-colcon.txt failed:\n{result.stderr[-3000:]}')
     scratch.rename(target)
     return target
@@ -70,10 +74,44 @@ def colcon_build(tools: Path, *selection: str) -> None:
     assert result.returncode == 0, f'colcon build failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}'
 
 
+def test_rosdep_resolves_every_pip_key_of_package_xml_from_the_shipped_source(tmp_path):
+    """`rosdep install` with rosdep itself and only rosdep.yaml registered (ros/rosdistro, which
+    defines the ROS and apt keys, cannot be reached here): each python3-<name>-pip key package.xml
+    declares resolves to pip's <name>, a distribution requirements.txt pins, on Jazzy's platforms."""
+    tools = jazzy_tools()
+    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot()
+                if element.tag.endswith('depend')}
+    pip_keys = {key: match.group(1) for key in declared if (match := re.fullmatch(r'python3-(.+)-pip', key))}
+    assert set(yaml.safe_load((REPO / 'rosdep.yaml').read_text())) == set(pip_keys), \
+        'rosdep.yaml defines exactly the pip keys package.xml declares'
+    pinned = {line.split('==')[0].split('[')[0].strip().lower() for line in
+              (REPO / 'requirements.txt').read_text().splitlines() if '==' in line and not line.startswith('#')}
+    assert set(pip_keys.values()) <= pinned, f'not pinned in requirements.txt: {set(pip_keys.values()) - pinned}'
+    sources = tmp_path / 'sources.list.d'
+    sources.mkdir()
+    (sources / '10-exit-decision.list').write_text(f'yaml {(REPO / "rosdep.yaml").as_uri()}\n')
+    index = tmp_path / 'index.yaml'
+    index.write_text('%YAML 1.1\n---\ndistributions: {}\ntype: index\nversion: 4\n')
+    env = {'PATH': os.environ['PATH'], 'PYTHONPATH': str(tools), 'ROSDEP_SOURCE_PATH': str(sources),
+           'ROS_HOME': str(tmp_path / 'ros_home'), 'ROSDISTRO_INDEX_URL': index.as_uri(), 'ROS_PYTHON_VERSION': '3'}
+
+    def rosdep(*args: str) -> str:
+        result = subprocess.run([sys.executable, '-m', 'rosdep2', *args], env=env, capture_output=True, text=True,
+                                timeout=120, check=False)
+        assert result.returncode == 0, f'rosdep {" ".join(args)}:\n{result.stdout}{result.stderr}'
+        return result.stdout
+
+    rosdep('update')
+    for platform in ('ubuntu:noble', 'debian:bookworm', 'rhel:9'):
+        resolved = dict(re.findall(r'#ROSDEP\[(.+?)\]\n#pip\n(.+)\n', rosdep('resolve', *sorted(pip_keys),
+                                                                              f'--os={platform}')))
+        assert resolved == pip_keys, platform
+
+
 @pytest.fixture(scope='module')
 def install() -> Path:
     """The scratch workspace's install/, built or brought up to date."""
-    tools = colcon_tools()
+    tools = jazzy_tools()
     msgs, package = digest(MSG_INPUTS), digest(PACKAGE_INPUTS)
     stamps = {name: WORKSPACE / f'.inputs_{name}' for name in ('msgs', 'package')}
     if not stamps['msgs'].is_file() or stamps['msgs'].read_text() != msgs:

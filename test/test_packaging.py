@@ -1,6 +1,5 @@
 """package.xml declares a rosdep key for every third-party import (rosdep_keys.yaml maps them)."""
 import ast
-import re
 import sys
 from xml.etree import ElementTree
 from pathlib import Path
@@ -41,12 +40,3 @@ def test_every_import_is_mapped_to_a_declared_rosdep_key():
     assert declared == set(keys.values()) | through_messages, 'package.xml declares exactly the mapped keys'
     assert set(keys) == set(imports), f'mapped but never imported: {sorted(set(keys) - set(imports))}'
 
-
-def test_pip_keys_name_distributions_the_project_pins():
-    keys = yaml.safe_load((REPO / 'rosdep_keys.yaml').read_text())['imports'].values()
-    pinned = {line.split('==')[0].split('[')[0].strip().lower() for line in
-              (REPO / 'requirements.txt').read_text().splitlines() if '==' in line and not line.startswith('#')}
-    for key in keys:
-        match = re.fullmatch(r'python3-(.+)-pip', key)
-        if match:
-            assert match.group(1) in pinned, f'{key}: {match.group(1)} is not pinned in requirements.txt'
