@@ -11,11 +11,12 @@ rejected whole and changes no state):
 - ``CommandLimits.sanitize``: CAV commands; a non-finite acceleration or a lane change
   outside the action grid rejects the message, a finite acceleration outside the grid is
   clamped to it (and counted by the caller).
-- ``StepGate``: which (episode, step) a stream may carry next. The episode changes only by
-  ``start`` (the bridge's or the player's EVENT_STARTED); within it steps go up, by at most
-  ``max_gap`` at a time, never past the scenario's step cap. A message that cannot follow
-  is rejected without moving the gate, so one bad sequence number never changes what the
-  later good messages get. A node that really missed more than ``max_gap`` steps (stalled,
+- ``StepGate``: which (episode, step) a stream may carry next. The episode changes only after
+  ``announce`` (the bridge's or the player's EVENT_STARTED), at the first message of the
+  announced episode (``begins``), so an EVENT_STARTED that no message of its episode follows
+  (stray, forged) changes nothing; within an episode steps go up, by at most ``max_gap`` at a
+  time, never past the scenario's step cap. A message that cannot follow is rejected without
+  moving the gate, so one bad sequence number never changes what the later good messages get. A node that really missed more than ``max_gap`` steps (stalled,
   lost messages) follows again after ``resync`` consecutive messages that follow each other.
 """
 from __future__ import annotations
@@ -36,6 +37,9 @@ ACCELERATION_MARGIN = 2.0
 #: [m/s] speeds up to the class's max_speed plus this are accepted (SUMO never exceeds it)
 SPEED_TOLERANCE = 1.0
 INTENTIONS = (INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT)
+#: episode starts a gate keeps announced at once (the oldest go first: a flood of forged starts
+#: during an episode cannot push out the bridge's next one, which comes after them)
+MAX_ANNOUNCED = 1000
 
 
 class InputError(ValueError):
@@ -180,19 +184,51 @@ class StepGate:
         self.max_step, self.max_gap, self.resync = max_step, max_gap, resync
         self.episode: int | None = None      # None until the first start
         self.last = -1                       # last accepted step of the episode (-1: none yet)
-        self._chain: list[int] = []          # consecutive messages too far ahead, each following the one before
+        self.announced: dict[int, int] = {}  # episodes whose EVENT_STARTED came -> self.last then; none begun yet
+        self._chain: list[tuple[int, int]] = []   # consecutive messages too far ahead, each following the one before
+
+    def announce(self, episode: int) -> None:
+        """An EVENT_STARTED of ``episode`` (the bridge's or the player's). With no episode yet the
+        gate follows it at once. Otherwise the current episode's messages still follow, and
+        ``episode`` (or another announced since) begins with its first message that can start
+        it (``begins``): a stray or forged EVENT_STARTED, before or after the bridge's, changes
+        nothing while no message of its episode follows it."""
+        if self.episode is None:
+            self.start(episode)
+            return
+        self.announced.pop(episode, None)
+        self.announced[episode] = self.last
+        if len(self.announced) > MAX_ANNOUNCED:
+            del self.announced[next(iter(self.announced))]
 
     def start(self, episode: int) -> None:
-        """A new episode began (the bridge's or the player's EVENT_STARTED): its steps count
-        from 0, so a late message of the episode before (a looped bag's last steps arriving
-        after the next pass's start) is refused, not taken as the new episode's first."""
-        self.episode, self.last, self._chain = episode, -1, []
+        """Follow ``episode`` from its step 0 now, so a late message of the pass before (a looped
+        bag's last steps arriving after the next pass began) is refused, not taken as the new
+        pass's first. A resync under way into ``episode`` goes on."""
+        self.episode, self.last = episode, -1
+        self.announced.clear()
+        self._chain = [entry for entry in self._chain if entry[0] == episode]
+
+    def begins(self, episode: int, step: int) -> bool:
+        """Whether a message of (episode, step), if taken, begins the announced episode (its
+        caller then starts its per-episode state afresh): one of the episode's first ``max_gap``
+        steps, a step back when the same episode starts again (a looped bag's next pass, while
+        the pass before has not gone on for more than ``max_gap`` steps since its start came), or
+        one that ends a resync (a node that joins late)."""
+        announced_at = self.announced.get(episode)
+        if announced_at is None or not 0 <= step <= self.max_step:
+            return False
+        if episode == self.episode and (step > self.last or self.last > announced_at + self.max_gap):
+            return False                     # it follows the pass that is running, which went on after that start
+        return step < self.max_gap or self._resyncs(episode, step)
 
     def check(self, episode: int, step: int) -> str | None:
         """Why a message of (episode, step) cannot come next, or None if it can. Changes no
         state: call ``accept`` once the whole message is found valid."""
         if self.episode is None:
             return f'episode {episode}: no episode has started'
+        if self.begins(episode, step):
+            return None
         if episode != self.episode:
             return f'episode {episode} is not the current episode {self.episode}'
         if not 0 <= step <= self.max_step:
@@ -201,10 +237,17 @@ class StepGate:
             return None
         if step <= self.last:
             return f'step {step} does not follow step {self.last}'
-        chain = self._chain if self._chain and self._chain[-1] < step <= self._chain[-1] + self.max_gap else []
-        if len(chain) + 1 >= self.resync:
+        if self._resyncs(episode, step):
             return None     # the stream really moved on: follow it
         return f'step {step} jumps more than {self.max_gap} steps past step {self.last}'
+
+    def _resyncs(self, episode: int, step: int) -> bool:
+        """(episode, step) would be the ``resync``-th of consecutive refused messages that follow each other."""
+        chain = self._chain if self._chain and self._follows(self._chain[-1], episode, step) else []
+        return len(chain) + 1 >= self.resync
+
+    def _follows(self, previous: tuple[int, int], episode: int, step: int) -> bool:
+        return previous[0] == episode and previous[1] < step <= previous[1] + self.max_gap
 
     def refuse(self, episode: int, step: int) -> str | None:
         """``check``, and a refused message remembered for a resync (``note_rejected``)."""
@@ -214,19 +257,26 @@ class StepGate:
         return reason
 
     def note_rejected(self, episode: int, step: int) -> None:
-        """Remember a message rejected only for jumping too far ahead (it may start a resync).
-        What later messages are accepted by ``check`` does not depend on it unless ``resync``
-        such messages in a row follow each other."""
-        if episode != self.episode or not self.last + self.max_gap < step <= self.max_step:
+        """Remember a message rejected only for jumping too far ahead (it may start a resync):
+        past the running pass's last step plus ``max_gap``, or past the announced episode's first
+        ``max_gap`` steps. What later messages are accepted by ``check`` does not depend on it
+        unless ``resync`` such messages in a row follow each other."""
+        if not 0 <= step <= self.max_step:
             return
-        if self._chain and self._chain[-1] < step <= self._chain[-1] + self.max_gap:
-            self._chain.append(step)
+        ahead = (episode == self.episode and step > self.last + self.max_gap) or (
+            episode in self.announced and step >= self.max_gap and (episode != self.episode or step <= self.last))
+        if not ahead:
+            return
+        if self._chain and self._follows(self._chain[-1], episode, step):
+            self._chain.append((episode, step))
         else:
-            self._chain = [step]
+            self._chain = [(episode, step)]
 
-    def accept(self, step: int) -> int:
-        """Take a message of ``step`` (``check`` said it can come next); the number of steps
-        skipped since the last one taken (or since the episode's start)."""
+    def accept(self, episode: int, step: int) -> int:
+        """Take a message of (episode, step) (``check`` said it can come next); the number of
+        steps skipped since the last one taken (or since the episode's start)."""
+        if self.begins(episode, step):
+            self.start(episode)
         skipped = step - self.last - 1
         self.last, self._chain = step, []
         return skipped

@@ -104,7 +104,7 @@ def feed(gate: StepGate, messages) -> list:
     taken = []
     for episode, step in messages:
         if gate.refuse(episode, step) is None:
-            gate.accept(step)
+            gate.accept(episode, step)
             taken.append((episode, step))
     return taken
 
@@ -133,12 +133,46 @@ def test_gate_follows_only_a_started_episode_and_a_stream_that_really_moved_on()
     assert gate.check(0, 0) is not None, 'nothing is taken before an episode starts'
     gate.start(7)
     assert feed(gate, [(7, 600), (7, 601), (7, 602)]) == [(7, 602)], 'a node that joins mid-episode follows'
-    gate.start(8)
-    assert feed(gate, [(8, 35), (8, 0), (8, 5)]) == [(8, 0), (8, 5)], \
-        "a late step of the pass before is not the new pass's first"
-    gate.start(7)
-    feed(gate, [(7, 600), (7, 601), (7, 602)])
+    gate.announce(8)
+    assert feed(gate, [(8, 35), (8, 0), (8, 5)]) == [(8, 0), (8, 5)], "an episode begins at its start"
+    gate.announce(7)
+    assert feed(gate, [(7, 600), (7, 601), (7, 602)]) == [(7, 602)], 'or where a node that joins late finds it'
     # a node that stalled and lost 100 steps follows again after three steps that follow each other
     assert feed(gate, [(7, 701), (7, 702), (7, 703), (7, 704)]) == [(7, 703), (7, 704)]
-    gate.start(0)                                  # a restarted bridge, a replayed bag
+    gate.announce(0)                               # a restarted bridge, a replayed bag
     assert feed(gate, [(0, 0), (0, 1)]) == [(0, 0), (0, 1)]
+
+
+def test_an_episode_start_no_message_of_its_episode_follows_changes_nothing():
+    """A stray or forged EVENT_STARTED (another episode, or the one running), before or after the
+    bridge's next one, leaves the running episode's messages as they were and the bridge's next
+    episode beginning with its first message."""
+    good = [(4, step) for step in range(30)]
+    for forged in (4 + 1000, 3, 0, 4, 5, 2**32 - 1):
+        for forged_first in (True, False):
+            gate = _started(StepGate(1500), 4)
+            assert feed(gate, good[:10]) == good[:10]
+            if forged_first:
+                gate.announce(forged)
+            assert feed(gate, good[10:]) == good[10:], forged
+            gate.announce(5)
+            if not forged_first:
+                gate.announce(forged)
+            assert feed(gate, [(4, 30), (5, 0), (4, 31), (5, 1)]) == [(4, 30), (5, 0), (5, 1)], \
+                (forged, 'the pass before follows until the next episode begins, then not')
+    # the same episode again (a looped bag's next pass) begins with a step back ...
+    gate = _started(StepGate(1500), 4)
+    feed(gate, good)
+    gate.announce(4)
+    assert feed(gate, [(4, 29), (4, 30), (4, 0), (4, 31), (4, 1)]) == [(4, 30), (4, 0), (4, 1)]
+    # ... but not once the running pass has gone on for more than the gap since that start came
+    gate = _started(StepGate(1500), 4)
+    feed(gate, good[:10])
+    gate.announce(4)
+    assert feed(gate, good[10:] + [(4, 3), (4, 30)]) == good[10:] + [(4, 30)]
+    # the known limit: a forged start together with a message that begins its episode is what a
+    # new bridge sends; the gate follows it
+    gate = _started(StepGate(1500), 4)
+    feed(gate, good[:10])
+    gate.announce(1004)
+    assert feed(gate, [(1004, 0), (4, 10)]) == [(1004, 0)]

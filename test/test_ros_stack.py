@@ -464,7 +464,8 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
 
 def bad_messages(latest: VehicleStateArray) -> list:
     """The fuzzer's findings (issue 12), aimed at what the stack is doing now: states for the
-    next step with a bad field or sequence number, commands with a bad step or value."""
+    next step with a bad field or sequence number, commands with a bad step or value, episode
+    starts no bridge sent."""
     from rclpy.serialization import serialize_message
 
     from exit_decision.ros.conversions import states_to_msg
@@ -497,16 +498,21 @@ def bad_messages(latest: VehicleStateArray) -> list:
                                 commands=[CavCommand(vehicle_id=cav, acceleration=math.nan)]),
                 CavCommandArray(episode=episode, step=step - step % 5, algorithm='fuzz',
                                 commands=[CavCommand(vehicle_id=cav, lane_change=7, acceleration=1.0)])]
-    return states + commands
+    # an episode no message follows (not the +1000 of the states above: a forged start together
+    # with its episode's first states is what a new bridge sends), and the episode running again
+    events = [EpisodeEvent(episode=episode + 2000, event=EpisodeEvent.EVENT_STARTED, seed=-1),
+              EpisodeEvent(episode=episode, event=EpisodeEvent.EVENT_STARTED, seed=-1)]
+    return states + commands + events
 
 
 FLOOD_RATE = 1000   # [msg/s] bad messages sent while the stack runs: the rate that starved the commands (issue 12)
 
 
-def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, dict]:
-    """Graph builder, decision node and a synchronous bridge for one episode (seed 10000), with
-    or without the flood of bad messages; its end event, the nodes' counters and the commands
-    the decision node sent, per step."""
+def run_synchronous_episode(setup, name: str, flood: bool, deciding=('graph_builder', 'decision_node')
+                            ) -> tuple[list, dict, dict]:
+    """Graph builder, decision node (``deciding``: as two processes, or composed in one) and a
+    synchronous bridge for one episode (seed 10000), with or without the flood of bad messages;
+    its end event, the nodes' counters and the commands the decision node sent, per step."""
     root, config_dir = setup['root'], setup['config_dir']
     test = ProbeNode(f'{name}_test')
     counters = {node: diagnostics_of(test, node) for node in ('sumo_bridge', 'graph_builder', 'decision_node')}
@@ -523,11 +529,13 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
     test.node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, COMMANDS_QOS)   # 1000: its own flood too
     states = test.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
     commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
-    nodes = [start_node('graph_builder', {'config_dir': config_dir}, root / f'graph_{name}.log'),
-             start_node('decision_node', {'config_dir': config_dir, 'policy_dir': setup['policies']},
-                        root / f'decision_{name}.log')]
-    nodes.append(start_node('sumo_bridge', {'config_dir': config_dir, 'episodes': 1, 'wait_for_subscribers': 3},
-                            root / f'bridge_{name}.log'))
+    events = test.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
+    nodes = [start_node(node, {'config_dir': config_dir, **({} if node == 'graph_builder' else
+                                                            {'policy_dir': setup['policies']})},
+                        root / f'{node}_{name}.log') for node in deciding]
+    listeners = len(deciding) + 1   # each process listens to the states once (composed too), and this test
+    nodes.append(start_node('sumo_bridge', {'config_dir': config_dir, 'episodes': 1,
+                                            'wait_for_subscribers': listeners}, root / f'bridge_{name}.log'))
     try:
         assert test.spin_until(lambda: latest, 90), 'the stack starts'
         sent, started = 0, time.monotonic()
@@ -536,13 +544,14 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
                 batch = bad_messages(latest[-1])
                 for _ in range(min(len(batch), int((time.monotonic() - started) * FLOOD_RATE) - sent)):
                     msg = batch[sent % len(batch)]
-                    (states if isinstance(msg, (VehicleStateArray, bytes)) else commands).publish(msg)
+                    (states if isinstance(msg, (VehicleStateArray, bytes)) else
+                     events if isinstance(msg, EpisodeEvent) else commands).publish(msg)
                     sent += 1
             test.executor.spin_once(timeout_sec=0.002)
         assert ended, 'the episode ends'
         test.spin_until(lambda: False, 1.5)                   # the last diagnostics
-        assert all(process.poll() is None for process in nodes[:2]), 'graph builder and decision node live'
-        assert nodes[2].wait(30) == 0
+        assert all(process.poll() is None for process in nodes[:-1]), 'graph builder and decision node live'
+        assert nodes[-1].wait(30) == 0
     finally:
         test.close()
         for process in nodes:
@@ -550,20 +559,29 @@ def run_synchronous_episode(setup, name: str, flood: bool) -> tuple[list, dict, 
     return ended, counters, decided
 
 
-def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup):
-    """The issue's bad messages, and a flood of them (FLOOD_RATE msg/s, two thirds on the states
-    topic, a third on the commands topic), sent to a running synchronous stack: every node lives,
-    counts what it rejected, and decides every decision step exactly as without them, with no
-    command timeout."""
-    clean_end, _, clean = run_synchronous_episode(setup, 'clean', flood=False)
-    ended, counters, decided = run_synchronous_episode(setup, 'fuzz', flood=True)
+@pytest.fixture(scope='module')
+def clean_episode(setup) -> tuple[list, dict, dict]:
+    return run_synchronous_episode(setup, 'clean', flood=False)
+
+
+@pytest.mark.parametrize('deciding', [('graph_builder', 'decision_node'), ('graph_and_decision',)],
+                         ids=['alone', 'composed'])
+def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup, clean_episode, deciding):
+    """The issue's bad messages, and a flood of them (FLOOD_RATE msg/s, over half on the states
+    topic, the rest on the commands and episode-events topics), sent to a running synchronous
+    stack, the graph builder and the decision node as two processes or composed in one (the
+    stack's default): every node lives, counts what it rejected, and decides every decision step
+    exactly as the two processes do without them, with no command timeout."""
+    clean_end, _, clean = clean_episode
+    ended, counters, decided = run_synchronous_episode(setup, f'fuzz_{deciding[0]}', flood=True, deciding=deciding)
     steps, interval = ended[0].steps, load_project(setup['config_dir']).env.decision_interval
     bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
     assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {counters}'
     assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
     assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
     assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
-    assert decision['rejected_states'] > 0 and decision['rejected_out_of_sequence_states'] > 0, decision
+    if 'decision_node' in deciding:   # alone it checks the states itself; composed it takes the graph builder's
+        assert decision['rejected_states'] > 0 and decision['rejected_out_of_sequence_states'] > 0, decision
     assert clean_end[0].steps == steps and sorted(clean) == list(range(0, steps + 1, interval)) and any(
         clean.values()), 'the clean run decided every decision step'
     assert decided == clean, 'the same commands on every decision step as in the run without bad messages'
@@ -777,6 +795,30 @@ def test_the_bridges_live_parameters_change_what_it_does_at_once(setup, tmp_path
         test.close()
         stop(bridge)
     assert ended == list(range(len(ended))) and 'all episodes done' in (tmp_path / 'bridge.log').read_text()
+
+
+def test_a_new_command_timeout_applies_from_the_next_step(setup, tmp_path):
+    """A synchronous bridge whose commands never come waits a ``command_timeout`` at each decision
+    step: 2 s, then, set through set_parameters while it waits, 0.05 s from the next one on."""
+    interval = load_project(setup['config_dir']).env.decision_interval
+    bridge = start_node('sumo_bridge', {'config_dir': setup['config_dir'], 'episodes': 1, 'command_timeout': 2.0,
+                                        'wait_for_subscribers': 1}, tmp_path / 'bridge.log')
+    test = ProbeNode('command_timeout_test')
+    test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)   # the bridge waits for one; it sends nothing
+    decision_steps = []   # arrival times of the states of decision steps, each followed by the bridge's wait
+    test.node.create_subscription(VehicleStateArray, STATES_TOPIC, lambda m: decision_steps.append(time.monotonic())
+                                  if m.step % interval == 0 else None, STREAM_QOS)
+    try:
+        assert test.spin_until(lambda: decision_steps, 60), 'the bridge steps'
+        test.spin_until(lambda: False, 1.0)
+        assert len(decision_steps) == 1, 'the next decision step comes after the 2 s timeout'
+        assert set_parameter(test, 'sumo_bridge', 'command_timeout', 0.05).successful
+        assert test.spin_until(lambda: len(decision_steps) >= 12, 10), len(decision_steps)
+        gaps = np.diff(decision_steps[-10:])
+        assert np.median(gaps) < 0.5, f'decision steps every {np.median(gaps):.2f} s after the change'
+    finally:
+        test.close()
+        stop(bridge)
 
 
 def test_messages_a_stalled_node_never_took_are_counted_as_dropped_on_their_topic(setup, tmp_path):

@@ -228,10 +228,11 @@ class Diagnostics:
 
     def out_of_sequence(self, gate, events, episode: int, step: int, what: str) -> bool:
         """Reject and count (``rejected_out_of_sequence_<what>``) a message whose (episode, step)
-        ``gate`` (an ``input_checks.StepGate``) refuses; True if it did. A message of an episode
-        the gate does not know first takes what waits on ``events`` (the episode-events
-        subscription): its EVENT_STARTED, from the same bridge or player, came before it."""
-        if episode != gate.episode:
+        ``gate`` (an ``input_checks.StepGate``) refuses; True if it did. A message of another
+        episode than the gate's, or a step back (the same episode again: a looped bag's next
+        pass), first takes what waits on ``events`` (the episode-events subscription): its
+        EVENT_STARTED, from the same bridge or player, came before it."""
+        if episode != gate.episode or step <= gate.last:
             take_waiting(events)
         reason = gate.refuse(episode, step)
         if reason:

@@ -26,7 +26,8 @@ In the stack it runs composed with the graph builder in one process (``graph_and
 which hands it each decision step's checked states and graph directly; started alone
 (``ros2 run exit_decision decision_node``) it subscribes to both topics. Alone, a graph or a
 states message is taken only if it can follow the current episode and step
-(the sequence starts afresh on the bridge's or the player's EVENT_STARTED, and only then)
+(the sequence starts afresh at the first message of an episode the bridge's or the player's
+EVENT_STARTED announced, and only then)
 and every field fits (sizes, finite values, the scenario's lanes, ids and ranges); otherwise
 it is rejected whole, counted on /diagnostics and changes nothing.
 """
@@ -74,9 +75,9 @@ def default_policy_dir() -> Path:
 
 
 class DecisionNode(Node):
-    """``composed``: the graph builder of the same process (``graph_and_decision``) hands this
-    node the episode events and each decision step's checked states with their graph
-    (``on_episode``, ``decide``): it subscribes to neither, and nothing crosses a process."""
+    """``composed``: the graph builder of the same process (``graph_and_decision``) tells this
+    node when an episode begins and hands it each decision step's checked states with their
+    graph (``begin_episode``, ``decide``): it subscribes to neither, and nothing crosses a process."""
 
     def __init__(self, composed: bool = False):
         super().__init__('decision_node')
@@ -296,17 +297,26 @@ class DecisionNode(Node):
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
             for gate in (self.graph_gate, self.states_gate):
-                gate.start(msg.episode)
-            self.graphs.clear()
-            self.states.clear()
-            self.last_decided = (msg.episode, -1)
+                gate.announce(msg.episode)
+
+    def begin_episode(self, episode: int) -> None:
+        """The first graph or states of an announced episode came: both streams follow it from
+        its start (a late message of the pass before is refused on either), and nothing of the
+        pass before is paired or counted as decided."""
+        for gate in (self.graph_gate, self.states_gate):
+            gate.start(episode)
+        self.graphs.clear()
+        self.states.clear()
+        self.last_decided = (episode, -1)
 
     def on_states(self, raw: bytes) -> None:
         states = self.diagnostics.take_states(raw, self.states_gate, self.events, self.limits, every=self.interval)
         if states is None:
             return                                  # only decision steps are used, checked
         episode, step, vehicles = states.episode, states.step, states.vehicles
-        self.diagnostics.count('skipped_states', self.states_gate.accept(step) // self.interval)
+        if self.states_gate.begins(episode, step):
+            self.begin_episode(episode)
+        self.diagnostics.count('skipped_states', self.states_gate.accept(episode, step) // self.interval)
         self.states[(episode, step)] = vehicles
         self.try_decide((episode, step))
 
@@ -320,7 +330,9 @@ class DecisionNode(Node):
         except InputError as error:
             self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
             return
-        self.diagnostics.count('skipped_graphs', self.graph_gate.accept(msg.step) // self.interval)
+        if self.graph_gate.begins(msg.episode, msg.step):
+            self.begin_episode(msg.episode)
+        self.diagnostics.count('skipped_graphs', self.graph_gate.accept(msg.episode, msg.step) // self.interval)
         self.graphs[(msg.episode, msg.step)] = (graph, msg.header.stamp)
         self.try_decide((msg.episode, msg.step))
 

@@ -5,13 +5,16 @@ steps), from their states alone, exactly as the environment builds it in trainin
 evaluation: the same rows (slots) for the same vehicles. The states of the steps between are
 not even decoded (their (episode, step) is read from the raw message): nobody uses their graph.
 
-Slots are kept per episode: they and the step sequence start afresh on the bridge's (or the
-player's) EVENT_STARTED, and only then. A state message is taken only if it can follow the
-current episode and step and every field fits the scenario (``exit_decision.input_checks``);
-otherwise it is rejected whole, counted on /diagnostics and changes nothing.
+Slots are kept per episode: they and the step sequence start afresh at the first states of an
+episode the bridge (or the player) announced with an EVENT_STARTED, and only then (an
+EVENT_STARTED that no states of its episode follow changes nothing). A state message is taken
+only if it can follow the current episode and step and every field fits the scenario
+(``exit_decision.input_checks``); otherwise it is rejected whole, counted on /diagnostics and
+changes nothing.
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import TYPE_CHECKING
 
 from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
@@ -45,7 +48,10 @@ class GraphBuilderNode(Node):
         declare_cpu_affinity(self)
         road = config.scenario.road
         geometry = RoadGeometry.of(road)
-        self.builder = GraphBuilder(config.graph, geometry.road_length, road.highway_speed_limit, road.lane_count)
+        # a new episode's first graph is built by a fresh builder, kept only if that graph is built
+        self.new_builder = partial(GraphBuilder, config.graph, geometry.road_length, road.highway_speed_limit,
+                                   road.lane_count)
+        self.builder = self.new_builder()
         self.limits = StateLimits.of(config, geometry)
         self.interval = config.env.decision_interval
         self.gate = StepGate(config.scenario.max_steps, max_gap=2 * self.interval)   # one decision step may go missing
@@ -65,25 +71,27 @@ class GraphBuilderNode(Node):
 
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
-            self.gate.start(msg.episode)
-            self.builder.reset()
-        if self.decision is not None:
-            self.decision.on_episode(msg)
+            self.gate.announce(msg.episode)
 
     def on_states(self, raw: bytes) -> None:
         states = self.diagnostics.take_states(raw, self.gate, self.events, self.limits, every=self.interval)
         if states is None:
             return
         episode, step = states.episode, states.step
+        begins = self.gate.begins(episode, step)
+        builder = self.new_builder() if begins else self.builder
         # one neighbour index for the graph and the decision (alone, the builder makes one if its features need it)
         snapshot = TrafficSnapshot(states.vehicles) if self.decision is not None else None
         try:
-            graph = self.builder.build(states.vehicles, snapshot)
+            graph = builder.build(states.vehicles, snapshot)
         except (GraphInputError, GraphCapacityError) as error:
             self.diagnostics.reject('states', f'states of step {step}', str(error))
             return
-        self.diagnostics.count('skipped_decision_steps', self.gate.accept(step) // self.interval)
+        self.builder = builder
+        self.diagnostics.count('skipped_decision_steps', self.gate.accept(episode, step) // self.interval)
         if self.decision is not None:
+            if begins:
+                self.decision.begin_episode(episode)
             self.decision.decide((episode, step), graph, snapshot, states.stamp)
         self.publisher.publish(graph_to_msg(graph, feature_set=self.feature_set, episode=episode, step=step,
                                             stamp=states.stamp))

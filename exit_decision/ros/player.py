@@ -2,8 +2,8 @@
 
 Messages go out serialized, exactly as recorded, ``rate`` times as fast as recorded (``rate``
 can change while playing: it applies from the next message). ``loop`` plays the bag again
-and again. The nodes start an episode's sequence checks on its EVENT_STARTED, so the player
-sends each episode's start before the episode's first states, on every pass: the bag's own
+and again. The nodes follow an episode only from its first states after its EVENT_STARTED, so
+the player sends each episode's start before the episode's first states, on every pass: the bag's own
 event, moved ahead if the recorder wrote it after them, or one made here if the bag has
 none. So a bag played twice, or looped, is decided again, not refused as already seen.
 While playing, the node answers parameter requests (its executor spins between messages).
@@ -90,9 +90,9 @@ class Player(Node):
 
     def let_the_pass_settle(self, publishers: dict) -> None:
         """Before a pass starts its episodes again: the last pass's messages delivered and given
-        time to be handled. A node that had the next pass's EVENT_STARTED in hand together with
-        the last steps of the pass before would take the event first (its executor does not keep
-        the order across topics) and refuse those steps as not following the new start."""
+        time to be handled, so the passes stay apart on every topic (a node takes the last steps
+        of the pass before as that pass's until the next pass's first message begins it; one of
+        them that arrived after it would be refused)."""
         for publisher in publishers.values():
             publisher.wait_for_all_acked(Duration(seconds=1.0))
         deadline = time.monotonic() + PASS_SETTLE

@@ -10,8 +10,8 @@ when the rate allows (so the last one is never lost). At an episode's end the st
 gets the bridge's collision count. Open the topic (or a recorded bag) in RViz or Foxglove
 with fixed frame ``map``.
 
-As the other nodes, it starts an episode's frames on the bridge's (or the player's)
-EVENT_STARTED only, takes a states message only if it can follow the current episode and step
+As the other nodes, it starts an episode's frames at the first states of an episode the
+bridge's (or the player's) EVENT_STARTED announced, and only then, takes a states message only if it can follow the current episode and step
 (``StepGate``; as an onlooker it follows any later step of the episode, so one joining
 mid-episode or falling behind draws on) and every field fits the scenario
 (``states_cdr.checked_states_cdr``), and otherwise rejects it whole and counts it on
@@ -129,7 +129,9 @@ class Visualizer(Node):
         if states is None:
             return
         step, vehicles = states.step, states.vehicles
-        self.gate.accept(step)
+        if self.gate.begins(states.episode, step):
+            self.frames.reset(states.episode)
+        self.gate.accept(states.episode, step)
         frame = self.frames.add(step, vehicles, overrides=self.overrides)
         self.last = frame, states.stamp
         wait = self.last_sent + 1.0 / self.max_rate - time.monotonic() if self.max_rate and vehicles else 0.0
@@ -159,11 +161,12 @@ class Visualizer(Node):
             self.send(*self.held_back)
 
     def on_episode(self, msg: EpisodeEvent) -> None:
-        """A start begins the episode's frames; at the end of the shown episode: its last frame
-        again, with the bridge's collision count."""
+        """A start is announced to the gate (the episode's frames begin with its first states); at
+        the end of the shown episode: its last frame again, with the bridge's collision count."""
         if msg.event == EpisodeEvent.EVENT_STARTED:
-            self.gate.start(msg.episode)
-            self.frames.reset(msg.episode)
+            if self.gate.episode is None:
+                self.frames.reset(msg.episode)   # the gate follows its first episode at once
+            self.gate.announce(msg.episode)
             return
         if msg.event != EpisodeEvent.EVENT_ENDED or msg.episode != self.frames.episode or self.last is None:
             return
