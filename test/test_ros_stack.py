@@ -151,6 +151,21 @@ def get_parameters(test: ProbeNode, node_name: str, names: list[str]) -> list:
     return [parameter_value_to_python(v) for v in response.values]
 
 
+def read_only_of_every_parameter(test: ProbeNode, node_name: str) -> dict[str, bool]:
+    """Every parameter the node declares (`ros2 param list`) -> whether it is read-only
+    (`ros2 param describe`)."""
+    from rcl_interfaces.srv import DescribeParameters, ListParameters
+    clients = {kind: test.node.create_client(kind, f'/{node_name}/{name}')
+               for kind, name in ((ListParameters, 'list_parameters'), (DescribeParameters, 'describe_parameters'))}
+    assert all(test.spin_until(client.service_is_ready, 30) for client in clients.values())
+    listed = test.call(clients[ListParameters], ListParameters.Request(), timeout=60)
+    assert listed is not None, f'{node_name} did not answer list_parameters within 60 s'
+    described = test.call(clients[DescribeParameters], DescribeParameters.Request(names=listed.result.names),
+                          timeout=60)
+    assert described is not None, f'{node_name} did not answer describe_parameters within 60 s'
+    return {descriptor.name: descriptor.read_only for descriptor in described.descriptors}
+
+
 def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(setup):
     process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
                                            'algorithm': 'mdgqn_conditioned', 'mode': 'AGGI'},
@@ -726,21 +741,31 @@ def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup,
         stop(process)
 
 
-@pytest.mark.parametrize('node, parameters, fixed, live', [
+@pytest.mark.parametrize('node, parameters, fixed, live, also_live', [
     ('sumo_bridge', {'startup_timeout': 600.0, 'wait_for_subscribers': 5},
      {'seed': 7, 'startup_timeout': 1.0, 'wait_for_subscribers': 0, 'timing': 'realtime'},
-     {'command_timeout': 2.5, 'realtime_factor': 4.0, 'episodes': 3}),
-    ('visualizer', {}, {'config_dir': '/tmp', 'cpu_affinity': [0]}, {'max_rate': 5.0}),
-    ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}),
-    ('graph_builder', {}, {'config_dir': '/tmp', 'thread_priority': 5}, {}),
+     {'command_timeout': 2.5, 'realtime_factor': 4.0, 'episodes': 3}, set()),
+    ('visualizer', {}, {'config_dir': '/tmp', 'cpu_affinity': [0]}, {'max_rate': 5.0}, set()),
+    ('recorder', {'bag_path': 'BAG'}, {'bag_path': '/tmp/other', 'topics': ['/clock']}, {}, set()),
+    ('graph_builder', {}, {'config_dir': '/tmp', 'thread_priority': 5}, {}, set()),
     ('decision_node', {'policy_dir': 'POLICIES'},
-     {'policy_dir': '/tmp', 'modes': ['CONP'], 'algorithms': ['gqn'], 'config_dir': '/tmp'}, {'mode': 'CONP'}),
+     {'policy_dir': '/tmp', 'modes': ['CONP'], 'algorithms': ['gqn'], 'config_dir': '/tmp'}, {'mode': 'CONP'},
+     {'algorithm', 'reward_weights'}),   # with the mode, each changes the others (tests of their own above)
+    ('player', {'bag_path': 'PLAYED', 'rate': 0.01, 'loop': True}, {'bag_path': '/tmp', 'wait_for_subscribers': 2,
+                                                                   'cpu_affinity': [0]}, {'rate': 0.02, 'loop': True},
+     set()),   # rate and loop while playing: test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing
 ])
-def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp_path, node, parameters, fixed, live):
+def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp_path, node, parameters, fixed, live,
+                                                                      also_live):
     """Through the set_parameters service (`ros2 param set`): a parameter a node uses only at
-    start refuses a new value instead of ignoring it; one it follows takes it."""
-    parameters = {'config_dir': setup['config_dir'], **parameters}
+    start refuses a new value instead of ignoring it; one it follows takes it. Every parameter
+    the node declares is one or the other: read-only, or listed here as live (``also_live``:
+    set in tests of their own), so a new one read only at start cannot go unnoticed."""
+    parameters = {**({} if node == 'player' else {'config_dir': setup['config_dir']}), **parameters}
     if parameters.get('bag_path') == 'BAG':
+        parameters['bag_path'] = str(tmp_path / 'bag')
+    if parameters.get('bag_path') == 'PLAYED':
+        write_episode_bag(tmp_path / 'bag', setup['config_dir'], with_graphs=False)
         parameters['bag_path'] = str(tmp_path / 'bag')
     if parameters.get('policy_dir') == 'POLICIES':
         parameters['policy_dir'] = str(setup['policies'])
@@ -754,6 +779,10 @@ def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp
             assert set_parameter(test, node, name, value).successful, name
         if live:
             assert get_parameters(test, node, list(live)) == list(live.values()), 'and takes it'
+        read_only = read_only_of_every_parameter(test, node)
+        assert set(fixed) <= {name for name, fixed_ in read_only.items() if fixed_}
+        assert {name for name, fixed_ in read_only.items() if not fixed_} == set(live) | also_live | {'use_sim_time'}, \
+            'every parameter is read-only or one of those the node follows (rclpy follows use_sim_time)'
         assert process.poll() is None
     finally:
         test.close()
