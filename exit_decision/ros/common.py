@@ -17,8 +17,9 @@ QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
   commands of the decision steps (56-85 command timeouts an episode). Observers (the
   launcher, the visualizer, tests) take ``STREAM_QOS``, depth 100. Messages lost anyway are
   counted (``dropped_<topic>``, from the publisher's sequence numbers, while a topic has one
-  publisher: rclpy does not say which of several publishers a message came from), and the
-  steps missing between two a node took as ``skipped_*``.
+  publisher: rclpy does not say which of several publishers a message came from, and its
+  message_lost event does not see a reader's keep-last overflow), and the steps missing
+  between two a node took as ``skipped_*``.
 - the recorder subscribes with depth 1000: it must keep everything, and writing is cheap.
 - episode_events: reliable, transient local, depth 50: a late subscriber (the launcher, a
   node restarted mid-episode, a recorder started later) still gets the episode that is
