@@ -11,13 +11,14 @@ rejected whole and changes no state):
 - ``CommandLimits.sanitize``: CAV commands; a non-finite acceleration or a lane change
   outside the action grid rejects the message, a finite acceleration outside the grid is
   clamped to it (and counted by the caller).
-- ``StepGate``: which (episode, step) a stream may carry next. The episode changes only after
-  ``announce`` (the bridge's or the player's EVENT_STARTED), at the first message of the
-  announced episode (``begins``), so an EVENT_STARTED that no message of its episode follows
-  (stray, forged) changes nothing; within an episode steps go up, by at most ``max_gap`` at a
-  time, never past the scenario's step cap. A message that cannot follow is rejected without
-  moving the gate, so one bad sequence number never changes what the later good messages get. A node that really missed more than ``max_gap`` steps (stalled,
-  lost messages) follows again after ``resync`` consecutive messages that follow each other.
+- ``StepGate``: which (episode, step) a stream may carry next. The episode changes only
+  after ``announce`` (the bridge's or the player's EVENT_STARTED), at the first message of
+  the announced episode (``begins``), so an EVENT_STARTED that no message of its episode
+  follows (stray, forged) changes nothing; within an episode steps go up, by at most
+  ``max_gap`` at a time, never past the scenario's step cap. A message that cannot follow is
+  rejected without moving the gate, so one bad sequence number never changes what the later
+  good messages get. A node that really missed more than ``max_gap`` steps (stalled, lost
+  messages) follows again after ``resync`` consecutive messages that follow each other.
 """
 from __future__ import annotations
 
@@ -37,8 +38,9 @@ ACCELERATION_MARGIN = 2.0
 #: [m/s] speeds up to the class's max_speed plus this are accepted (SUMO never exceeds it)
 SPEED_TOLERANCE = 1.0
 INTENTIONS = (INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT)
-#: episode starts a gate keeps announced at once (the oldest go first: a flood of forged starts
-#: during an episode cannot push out the bridge's next one, which comes after them)
+#: episode starts a gate keeps announced at once, the oldest dropped first: forged starts sent
+#: during an episode cannot push out the bridge's next start, which comes after them (more than
+#: this many sent between the bridge's start and its episode's first message could)
 MAX_ANNOUNCED = 1000
 
 

@@ -10,7 +10,7 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import GraphBuilder, GraphInputError
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import CavCommand, vehicle_id_of
-from exit_decision.input_checks import CommandLimits, InputError, StateLimits, StepGate
+from exit_decision.input_checks import MAX_ANNOUNCED, CommandLimits, InputError, StateLimits, StepGate
 
 
 @pytest.fixture(scope='module')
@@ -170,6 +170,12 @@ def test_an_episode_start_no_message_of_its_episode_follows_changes_nothing():
     feed(gate, good[:10])
     gate.announce(4)
     assert feed(gate, good[10:] + [(4, 3), (4, 30)]) == good[10:] + [(4, 30)]
+    # a flood of forged starts during the episode does not push out the bridge's next one
+    gate = _started(StepGate(1500), 4)
+    for forged in range(1000, 1000 + 3 * MAX_ANNOUNCED):
+        gate.announce(forged)
+    gate.announce(5)
+    assert len(gate.announced) == MAX_ANNOUNCED and feed(gate, [(5, 0), (5, 1)]) == [(5, 0), (5, 1)]
     # the known limit: a forged start together with a message that begins its episode is what a
     # new bridge sends; the gate follows it
     gate = _started(StepGate(1500), 4)

@@ -1,5 +1,5 @@
-"""The README's real Jazzy install path: `rosdep install --from-paths <repo> <repo>/msg_defs` with the
-shipped rosdep source (rosdep.yaml), `colcon build --paths <repo> <repo>/msg_defs --merge-install`
+"""The README's real Jazzy install path: the pip keys `rosdep install --from-paths <repo> <repo>/msg_defs`
+resolves from the shipped rosdep source (rosdep.yaml), `colcon build --paths <repo> <repo>/msg_defs --merge-install`
 into a scratch workspace, then every node started from that install with nothing of the package
 from the project venv: another interpreter prefix (as /usr is on a Jazzy machine), the
 workspace's own local_setup.bash, config and policies through the ament index.
@@ -17,12 +17,11 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
-from xml.etree import ElementTree
 
 import pytest
-import yaml
 
 from exit_decision.ros.launcher import ros_args
+from test_packaging import declared_pip_keys
 
 REPO = Path(__file__).resolve().parent.parent
 CACHE = REPO / 'build' / 'test_colcon'
@@ -46,7 +45,7 @@ def digest(patterns: list[str]) -> str:
 
 def jazzy_tools() -> Path:
     """requirements-colcon.txt installed with --target, once per version of that file."""
-    target = CACHE / f'colcon-{digest(["requirements-colcon.txt"])}'
+    target = CACHE / f'tools-{digest(["requirements-colcon.txt"])}'
     if target.is_dir():
         return target
     scratch = target.with_name(target.name + '.partial')
@@ -75,18 +74,12 @@ def colcon_build(tools: Path, *selection: str) -> None:
 
 
 def test_rosdep_resolves_every_pip_key_of_package_xml_from_the_shipped_source(tmp_path):
-    """`rosdep install` with rosdep itself and only rosdep.yaml registered (ros/rosdistro, which
-    defines the ROS and apt keys, cannot be reached here): each python3-<name>-pip key package.xml
-    declares resolves to pip's <name>, a distribution requirements.txt pins, on Jazzy's platforms."""
+    """What `rosdep install` would install for the pip keys, asked of rosdep itself (`rosdep
+    update`, `rosdep resolve`) with only rosdep.yaml registered (ros/rosdistro, which defines the
+    ROS and apt keys, cannot be reached here): each python3-<name>-pip key package.xml declares
+    resolves to pip's <name> on Jazzy's platforms (test_packaging.py: <name> is pinned)."""
     tools = jazzy_tools()
-    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot()
-                if element.tag.endswith('depend')}
-    pip_keys = {key: match.group(1) for key in declared if (match := re.fullmatch(r'python3-(.+)-pip', key))}
-    assert set(yaml.safe_load((REPO / 'rosdep.yaml').read_text())) == set(pip_keys), \
-        'rosdep.yaml defines exactly the pip keys package.xml declares'
-    pinned = {line.split('==')[0].split('[')[0].strip().lower() for line in
-              (REPO / 'requirements.txt').read_text().splitlines() if '==' in line and not line.startswith('#')}
-    assert set(pip_keys.values()) <= pinned, f'not pinned in requirements.txt: {set(pip_keys.values()) - pinned}'
+    pip_keys = declared_pip_keys()
     sources = tmp_path / 'sources.list.d'
     sources.mkdir()
     (sources / '10-exit-decision.list').write_text(f'yaml {(REPO / "rosdep.yaml").as_uri()}\n')

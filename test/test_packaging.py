@@ -1,5 +1,6 @@
 """package.xml declares a rosdep key for every third-party import (rosdep_keys.yaml maps them)."""
 import ast
+import re
 import sys
 from xml.etree import ElementTree
 from pathlib import Path
@@ -40,3 +41,20 @@ def test_every_import_is_mapped_to_a_declared_rosdep_key():
     assert declared == set(keys.values()) | through_messages, 'package.xml declares exactly the mapped keys'
     assert set(keys) == set(imports), f'mapped but never imported: {sorted(set(keys) - set(imports))}'
 
+
+def declared_pip_keys() -> dict[str, str]:
+    """Each rosdep pip key package.xml declares (python3-<name>-pip) -> <name>."""
+    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot()
+                if element.tag.endswith('depend')}
+    return {key: match.group(1) for key in declared if (match := re.fullmatch(r'python3-(.+)-pip', key))}
+
+
+def test_rosdep_yaml_defines_every_pip_key_for_a_pinned_distribution():
+    """rosdep.yaml (the rosdep source the README registers) defines exactly the python3-<name>-pip
+    keys package.xml declares, each <name> pinned in requirements.txt; test_install_colcon.py
+    asks rosdep itself what they resolve to."""
+    pip_keys = declared_pip_keys()
+    assert set(yaml.safe_load((REPO / 'rosdep.yaml').read_text())) == set(pip_keys)
+    pinned = {line.split('==')[0].split('[')[0].strip().lower() for line in
+              (REPO / 'requirements.txt').read_text().splitlines() if '==' in line and not line.startswith('#')}
+    assert set(pip_keys.values()) <= pinned, f'not pinned in requirements.txt: {set(pip_keys.values()) - pinned}'

@@ -1,12 +1,13 @@
 """player: republishes a bag's topics with their recorded timing (and so its /clock).
 
-Messages go out serialized, exactly as recorded, ``rate`` times as fast as recorded (``rate``
-can change while playing: it applies from the next message). ``loop`` plays the bag again
-and again. The nodes follow an episode only from its first states after its EVENT_STARTED, so
-the player sends each episode's start before the episode's first states, on every pass: the bag's own
-event, moved ahead if the recorder wrote it after them, or one made here if the bag has
-none. So a bag played twice, or looped, is decided again, not refused as already seen.
-While playing, the node answers parameter requests (its executor spins between messages).
+Messages go out serialized, exactly as recorded, ``rate`` times as fast as recorded
+(``rate`` can change while playing: it applies from the next message). ``loop`` plays the
+bag again and again. The nodes follow an episode only from its first states after its
+EVENT_STARTED, so the player sends each episode's start before the episode's first states,
+on every pass: the bag's own event, moved ahead if the recorder wrote it after them, or one
+made here if the bag has none. So a bag played twice, or looped, is decided again, not
+refused as already seen. While playing, the node answers parameter requests (its executor
+spins between messages).
 
 A ``bag_path`` that is empty, missing or not a readable bag stops the player with one line
 naming the parameter, and exit code 1.

@@ -214,12 +214,13 @@ class SumoBridge(Node):
         self.env.reset(seed=seed)
         result = self.env.sim.state
         self.pending, self.published_step, self.last_command_step = None, -1, -1
-        # The nodes follow the episode from its first states after this event. No wait for its acknowledgements:
-        # Fast DDS acknowledges with its periodic heartbeat, so a 1 s wait for them always ran out
-        # (1 s lost at every episode's start). It reaches a node before the states published after
-        # it (in order from this participant), and a node that meets states of an episode it does
-        # not know takes its waiting events first (graph_builder, decision_node); a node that still
-        # misses the first step costs that step's command timeout, as the wait did.
+        # The nodes follow the episode from its first states after this event. No wait for its
+        # acknowledgements: Fast DDS acknowledges with its periodic heartbeat, so a 1 s wait for
+        # them always ran out (1 s lost at every episode's start). It reaches a node before the
+        # states published after it (in order from this participant), and a node that meets states
+        # of an episode it does not know takes its waiting events first (graph_builder,
+        # decision_node); a node that still misses the first step costs that step's command timeout,
+        # as the wait did.
         self.publish_event(EpisodeEvent.EVENT_STARTED, seed, result)
         next_tick = time.monotonic()
         while rclpy.ok(context=self.context):

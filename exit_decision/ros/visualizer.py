@@ -11,11 +11,11 @@ gets the bridge's collision count. Open the topic (or a recorded bag) in RViz or
 with fixed frame ``map``.
 
 As the other nodes, it starts an episode's frames at the first states of an episode the
-bridge's (or the player's) EVENT_STARTED announced, and only then, takes a states message only if it can follow the current episode and step
-(``StepGate``; as an onlooker it follows any later step of the episode, so one joining
-mid-episode or falling behind draws on) and every field fits the scenario
-(``states_cdr.checked_states_cdr``), and otherwise rejects it whole and counts it on
-/diagnostics: a bad message changes no frame.
+bridge's (or the player's) EVENT_STARTED announced, and only then, takes a states message
+only if it can follow the current episode and step (``StepGate``; as an onlooker it follows
+any later step of the episode, so one joining mid-episode or falling behind draws on) and
+every field fits the scenario (``states_cdr.checked_states_cdr``), and otherwise rejects it
+whole and counts it on /diagnostics: a bad message changes no frame.
 """
 from __future__ import annotations
 
