@@ -293,11 +293,15 @@ def proc_files(launcher, file: str) -> dict[str, str]:
     return texts
 
 
+def resident_mb(status: str) -> float:
+    """Resident memory (VmRSS) [MB] in the text of a ``/proc/<pid>/status``."""
+    return next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
+
+
 def process_memory_mb(launcher) -> dict[str, float]:
     """Resident memory (VmRSS) of each running process of the launcher: a long ``bench ros``
     shows whether a node's memory grows with the steps (the recorder's must not)."""
-    return {name: next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS:')) / 1024
-            for name, status in proc_files(launcher, 'status').items()}
+    return {name: resident_mb(status) for name, status in proc_files(launcher, 'status').items()}
 
 
 def process_cores(launcher) -> dict[str, list[int]]:

@@ -29,10 +29,17 @@ def third_party_imports() -> dict[str, str]:
     return found
 
 
+def declared_keys(tag: str = '') -> set[str]:
+    """The rosdep keys package.xml declares in its ``tag`` elements (e.g. exec_depend; empty:
+    every kind of *depend)."""
+    root = ElementTree.parse(REPO / 'package.xml').getroot()
+    return {element.text for element in root if element.tag == tag or (not tag and element.tag.endswith('depend'))}
+
+
 def test_every_import_is_mapped_to_a_declared_rosdep_key():
     table = yaml.safe_load((REPO / 'rosdep_keys.yaml').read_text())
     keys, through_messages = table['imports'], set(table['through_messages'])
-    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot().iter('exec_depend')}
+    declared = declared_keys('exec_depend')
     imports = third_party_imports()
     unmapped = {name: path for name, path in imports.items() if name not in keys}
     assert not unmapped, f'imports without a rosdep key in rosdep_keys.yaml: {unmapped}'
@@ -44,9 +51,7 @@ def test_every_import_is_mapped_to_a_declared_rosdep_key():
 
 def declared_pip_keys() -> dict[str, str]:
     """Each rosdep pip key package.xml declares (python3-<name>-pip) -> <name>."""
-    declared = {element.text for element in ElementTree.parse(REPO / 'package.xml').getroot()
-                if element.tag.endswith('depend')}
-    return {key: match.group(1) for key in declared if (match := re.fullmatch(r'python3-(.+)-pip', key))}
+    return {key: match.group(1) for key in declared_keys() if (match := re.fullmatch(r'python3-(.+)-pip', key))}
 
 
 def test_rosdep_yaml_defines_every_pip_key_for_a_pinned_distribution():

@@ -340,10 +340,7 @@ def test_the_recorders_memory_stays_flat_however_many_messages_it_records(setup,
     vehicles, about 1 KB each: 60 MB if it kept them), once its buffers are warm, its resident
     memory grows by less than 8 MB: room for its 1 MB chunk, its depth-1000 queue and the
     allocator's slack."""
-
-    def resident_mb(process) -> float:
-        status = Path(f'/proc/{process.pid}/status').read_text().splitlines()
-        return int(next(line for line in status if line.startswith('VmRSS')).split()[1]) / 1024
+    from exit_decision.benchmarks import resident_mb
 
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
@@ -370,9 +367,10 @@ def test_the_recorders_memory_stays_flat_however_many_messages_it_records(setup,
             assert test.spin_until(lambda: counters.get('messages', 0) >= sent, 30), (sent, counters)
 
         record(10_000)
-        warm = resident_mb(recorder)
+        status = Path(f'/proc/{recorder.pid}/status')
+        warm = resident_mb(status.read_text())
         record(60_000)
-        grown = resident_mb(recorder) - warm
+        grown = resident_mb(status.read_text()) - warm
         assert grown < 8.0, f'the recorder grew by {grown:.1f} MB over 60000 messages (from {warm:.0f} MB)'
         assert stop(recorder, sig=15) == 0
     finally:
@@ -750,9 +748,8 @@ def test_thread_priority_runs_every_thread_of_the_decision_node_real_time(setup,
     ('decision_node', {'policy_dir': 'POLICIES'},
      {'policy_dir': '/tmp', 'modes': ['CONP'], 'algorithms': ['gqn'], 'config_dir': '/tmp'}, {'mode': 'CONP'},
      {'algorithm', 'reward_weights'}),   # with the mode, each changes the others (tests of their own above)
-    ('player', {'bag_path': 'PLAYED', 'rate': 0.01}, {'bag_path': '/tmp', 'wait_for_subscribers': 2,
-                                                                   'cpu_affinity': [0]}, {'rate': 0.02, 'loop': True},
-     set()),   # rate and loop while playing: test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing
+    ('player', {'bag_path': 'PLAYED', 'rate': 0.01},
+     {'bag_path': '/tmp', 'wait_for_subscribers': 2, 'cpu_affinity': [0]}, {'rate': 0.02, 'loop': True}, set()),   # rate and loop while playing: test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing
 ])
 def test_parameters_read_at_start_only_are_read_only_the_others_apply(setup, tmp_path, node, parameters, fixed, live,
                                                                       also_live):

@@ -28,7 +28,7 @@ import yaml
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Shield
-from exit_decision.config import ProjectConfig, default_config_dir, deep_merge, load_project
+from exit_decision.config import ProjectConfig, default_config_dir, deep_merge, load_project, load_yaml
 from exit_decision.errors import UsageError
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError, TrafficGraph
 from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
@@ -179,7 +179,7 @@ def record_fixture(fixture: Path, log_dir: Path) -> str:
         config_dir = shutil.copytree(default_config_dir(), Path(scratch) / 'config')
         for name, values in FIXTURE_OVERRIDE.items():
             path = config_dir / f'{name}.yaml'
-            path.write_text(yaml.safe_dump(deep_merge(yaml.safe_load(path.read_text()), values)))
+            path.write_text(yaml.safe_dump(deep_merge(load_yaml(path), values)))
         load_project(config_dir)   # fail here, naming the key, if the override no longer fits
         new.mkdir()
         (new / 'override.yaml').write_text(
