@@ -8,6 +8,10 @@ A bag that cannot be read (missing, empty, corrupt, or unfinished: a recorder ki
 SIGKILL leaves an mcap file with no summary and no metadata.yaml) raises ``BagError``, one
 line saying what is wrong and what to do. ``repair_bag`` makes an unfinished bag readable up
 to its last complete chunk and says what was lost.
+
+Chunks are written compressed (``open_writer``, ``COMPRESSIONS``) as mcap allows: zstd or lz4
+(rosbag2's own mcap plugin, Foxglove and rosbags read both), or not at all. Readers need no
+option: each chunk names its compression.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from pathlib import Path
 from ament_index_python.packages import get_package_share_directory
 from rclpy.qos import QoSProfile, qos_profile_parameter_events
 from rclpy.serialization import deserialize_message
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderError, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -46,6 +50,8 @@ KNOWN_TOPICS = {**DEFAULT_TOPICS, DIAGNOSTICS_TOPIC: 'diagnostic_msgs/msg/Diagno
 BAG_ALLOWED = 'a rosbag2 (mcap) directory, as the recorder writes'
 #: errors rosbags and rclpy raise on a bag whose files are damaged (RuntimeError: CDR rclpy cannot read)
 READ_ERRORS = (ReaderError, OSError, ValueError, KeyError, EOFError, struct.error, RuntimeError)
+#: mcap chunk compressions a bag can be written with
+COMPRESSIONS = ('none', 'zstd', 'lz4')
 
 
 class BagError(ValueError):
@@ -77,6 +83,23 @@ def typestore() -> Typestore:
         types.update(get_types_from_msg(path.read_text(), f'exit_decision_msgs/msg/{path.stem}'))
     store.register(types)
     return store
+
+
+def open_writer(path: Path, compression: str = 'none') -> Writer:
+    """A new mcap bag at ``path``, open, its chunks compressed with ``compression`` (one of
+    COMPRESSIONS). rosbags 0.11.9 offers zstd chunks itself (its CompressionMode.STORAGE; the
+    metadata says no file or message compression, as rosbag2 does for chunk compression);
+    lz4, which its reader reads, is set on its mcap storage before the first chunk is closed."""
+    if compression not in COMPRESSIONS:
+        raise ValueError(f'compression {compression!r}; allowed: {" | ".join(COMPRESSIONS)}')
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compression == 'zstd':
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    writer.open()
+    if compression == 'lz4':
+        from lz4.frame import compress   # rosbags' own dependency (its reader's lz4)
+        writer.storage.compression, writer.storage.compressor = 'lz4', compress
+    return writer
 
 
 def open_bag(path: Path) -> Reader:
@@ -172,8 +195,9 @@ def repair_bag(path: Path) -> RepairReport:
     """Rewrite an unfinished bag (recorder killed) from its complete chunks, in place.
 
     The unfinished mcap file is kept beside the new one as ``<name>.mcap.unfinished``; the
-    bag gets a new mcap file with its summary and a metadata.yaml. BagError if the bag is no
-    unfinished bag (missing, finished already, not an mcap file)."""
+    bag gets a new mcap file with its summary and a metadata.yaml, its chunks compressed as
+    the first chunk of the old one was. BagError if the bag is no unfinished bag (missing,
+    finished already, not an mcap file)."""
     from rosbags.rosbag2.storage_mcap import decompress, get_qos   # rosbags' own chunk check and QoS reader
 
     if not path.is_dir():
@@ -190,16 +214,16 @@ def repair_bag(path: Path) -> RepairReport:
     channels: dict[int, tuple[str, str, bytes]] = {}    # id -> topic, type, metadata
     staging = path.parent / f'.{path.name}.repair'
     shutil.rmtree(staging, ignore_errors=True)
-    writer = Writer(staging / path.name, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer: Writer | None = None   # opened at the first chunk, with its compression
     connections: dict[int, object] = {}
     kept = 0
     try:
         with files[0].open('rb') as stream:
             if stream.read(8) != MCAP_MAGIC:
                 raise BagError(f'{path}: {files[0].name} is not an mcap file; allowed: {BAG_ALLOWED}')
-            writer.open()
 
             def take(op: int, body: bytes) -> None:
+                nonlocal writer
                 if op == OP_SCHEMA:
                     (key,) = struct.unpack_from('<H', body)
                     schemas[key] = _string(body, 2)[0]
@@ -212,6 +236,8 @@ def repair_bag(path: Path) -> RepairReport:
                 elif op == OP_MESSAGE:
                     key, _, log_time = struct.unpack_from('<HIQ', body)
                     topic, msgtype, metadata = channels[key]
+                    if writer is None:   # a message outside any chunk (not rosbags' way)
+                        writer = open_writer(staging / path.name)
                     if key not in connections:
                         if msgtype not in store.types:
                             report.unknown_types.append(topic)
@@ -232,12 +258,16 @@ def repair_bag(path: Path) -> RepairReport:
                     _, _, size, crc = struct.unpack_from('<QQQI', body)
                     compression, offset = _string(body, 28)
                     (length,) = struct.unpack_from('<Q', body, offset)
+                    if writer is None:
+                        writer = open_writer(staging / path.name, compression or 'none')
                     for record in _records(decompress(body[offset + 8:offset + 8 + length], compression, size, crc)):
                         take(*record)
                 else:
                     take(op, body)
                 kept = stream.tell()
             report.lost_bytes = stream.seek(0, 2) - kept
+        if writer is None:   # not one complete chunk: an empty bag
+            writer = open_writer(staging / path.name)
         writer.close()
     except BaseException as error:
         shutil.rmtree(staging, ignore_errors=True)

@@ -11,6 +11,9 @@ a bag opened in Foxglove or RViz shows the scene with no extra step.
 Memory stays flat however long it records: messages go to the file a chunk (1 MB, or a
 second) at a time; what stays in memory per chunk is its index entry (about 100 bytes).
 
+Parameter ``compression`` compresses each chunk (mcap's chunk compression; ``bags.open_writer``):
+zstd by default, lz4, or none.
+
 Gaps in the recorded step sequences of states (every step), graphs and commands (every
 decision step) are counted per topic on /diagnostics (``gaps_<topic>``, ``missing_steps_<topic>``)
 and in the summary at close: a node that died and came back leaves such a hole.
@@ -23,15 +26,17 @@ from pathlib import Path
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import Writer, WriterError
 
-from exit_decision.ros.bags import DEFAULT_TOPICS, KNOWN_TOPICS, message_class, topic_qos, typestore
+from exit_decision.ros.bags import COMPRESSIONS, DEFAULT_TOPICS, KNOWN_TOPICS, message_class, open_writer, topic_qos, \
+    typestore
 from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
-                                      ParameterError, declare, declare_config, declare_cpu_affinity,
+                                      ParameterError, check_choice, declare, declare_config, declare_cpu_affinity,
                                       describe, run_node)
 from exit_decision.step_gaps import StepGaps
 
 FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only
+DEFAULT_COMPRESSION = 'zstd'
 
 
 def flush(writer: Writer) -> None:
@@ -54,13 +59,15 @@ class Recorder(Node):
         topics = list(declare(self, 'topics', list(DEFAULT_TOPICS), describe(
             'topics to record; types of others than the known ones are found on the ROS graph',
             read_only=True)))
+        compression = declare(self, 'compression', DEFAULT_COMPRESSION, describe(
+            'mcap chunk compression of the bag', read_only=True, constraints=' | '.join(COMPRESSIONS)))
+        check_choice('compression', compression, COMPRESSIONS)
         if self.path.exists():
             raise ParameterError(f'parameter bag_path: {self.path} exists already; allowed: a directory that does '
                                  f'not exist yet (the recorder never writes into an existing bag)')
         self.store = typestore()
         try:
-            self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-            self.writer.open()
+            self.writer = open_writer(self.path, compression)
         except (WriterError, OSError) as error:
             raise ParameterError(f'parameter bag_path: {self.path}: cannot write a bag there ({error}); '
                                  f'allowed: a directory that does not exist yet, in a writable place') from None
@@ -75,7 +82,7 @@ class Recorder(Node):
             self.discovery = self.create_timer(0.5, self.discover)
         # wall clock (steady), also under use_sim_time: a second of a 50x run is 50 s of simulation
         self.create_timer(FLUSH_PERIOD, lambda: flush(self.writer), clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.get_logger().info(f'recording {", ".join(topics)} to {self.path}')
+        self.get_logger().info(f'recording {", ".join(topics)} to {self.path} ({compression} compression)')
 
     def subscribe(self, topic: str, type_name: str | None) -> bool:
         if type_name is None:
