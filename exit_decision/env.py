@@ -106,13 +106,17 @@ class ExitDecisionEnv(gym.Env):
         if self.step_inputs is not None:
             self.step_inputs.append(inputs)
         vector = self.reward_fn.vector(inputs)
-        self.episode_log.record(result, vector.total())
+        self.episode_log.record(result, vector.total(), self.sim.snapshot)
         if self.learning_reward_fn is not self.reward_fn:
             vector = self.learning_reward_fn.vector(inputs)
         return result, vector
 
     def step(self, action):
-        commands = self.commands(action)
+        return self.step_commands(self.commands(action))
+
+    def step_commands(self, commands: dict):
+        """``step`` with the CAVs' commands given directly (vehicle id -> ``CavCommand``): the
+        options' low level makes commands that are not on the action grid."""
         graph = self.graph
         acting = {vehicle_id: row for vehicle_id, row in graph.row_of().items() if graph.cav_mask[row]}
         per_row = np.zeros((graph.num_nodes, 4, 2))

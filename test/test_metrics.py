@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from exit_decision.episode_log import EpisodeLog
+from exit_decision.episode_log import METRICS, EpisodeLog
 from exit_decision.evaluation.metrics import markdown_table, summarize
-from exit_decision.traffic import Arrival, Collision, StepResult
+from exit_decision.traffic import Arrival, Collision, StepResult, TrafficSnapshot
 
 from conftest import make_vehicle
 
@@ -40,6 +40,21 @@ def test_metrics_of_a_hand_made_episode():
     assert m['N_braking'] == 1 and m['braking_steps'] == 2
     assert m['p_CAV'] == pytest.approx(0.5) and m['p_HV2'] == pytest.approx(1.0)
     assert m['reward'] == pytest.approx(0.0) and m['steps'] == 4
+    assert m['N_braking_CAV'] == 1
+    assert math.isnan(m['headway_CAV']), 'no snapshot given: no headway counted'
+
+
+def test_cav_time_headway_counts_close_leaders_of_moving_cavs_only():
+    log = EpisodeLog()
+    cav = make_vehicle('c', 'CAV', lane=1, position=100.0, speed=20.0)
+    leader = make_vehicle('l', 'HV1', lane=1, position=135.0, speed=20.0)          # 30 m bumper gap
+    slow = make_vehicle('s', 'CAV', lane=0, position=100.0, speed=4.0)             # too slow to count
+    slow_leader = make_vehicle('sl', 'HV3', lane=0, position=110.0, speed=4.0)
+    far = make_vehicle('f', 'CAV', lane=2, position=100.0, speed=20.0)
+    far_leader = make_vehicle('fl', 'HV1', lane=2, position=300.0, speed=20.0)     # beyond 100 m
+    vehicles = [cav, leader, slow, slow_leader, far, far_leader]
+    log.record(StepResult(1, 0.1, vehicles), snapshot=TrafficSnapshot(vehicles))
+    assert log.metrics()['headway_CAV'] == pytest.approx(30.0 / 20.0)
 
 
 def test_empty_log_gives_nan_not_zero_division():
@@ -48,8 +63,7 @@ def test_empty_log_gives_nan_not_zero_division():
 
 
 def test_summary_and_table():
-    episodes = [{**dict.fromkeys(('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking',
-                                  'braking_steps', 'p_CAV', 'p_HV2', 'reward', 'steps'), v)} for v in (1.0, 3.0)]
+    episodes = [dict.fromkeys(METRICS, v) for v in (1.0, 3.0)]
     summary = summarize(episodes)
     assert summary['p_CAV'] == (2.0, 1.0)
     assert '| run-a | 2 ± 1 |' in markdown_table([('run-a', summary)])

@@ -69,3 +69,35 @@ def test_pulls_ahead_of_a_slower_follower_when_its_lane_is_free(driver):
     commands = decide(driver, [cav, follower])
     assert commands['cav'].lane_change == 0
     assert commands['cav'].acceleration >= -1.0, 'keeps ahead of the follower (dropping back brakes harder)'
+
+
+def test_off_grid_command_is_the_rules_acceleration_within_the_shields_range(driver):
+    """The options' low level: a CAV nearing the lane's limit on a free road keeps a small
+    acceleration that the grid would round down to 0 (and so never reach 25 m/s); behind a
+    close, slower leader the command stays within what the shield allows."""
+    free = make_vehicle('free', 'CAV', lane=1, position=60.0, speed=24.0)
+    snapshot = TrafficSnapshot([free])
+    command = driver.command(free, driver.shield.mask(free, snapshot), snapshot)
+    assert command.lane_change == 0
+    assert 0.0 < command.acceleration < 0.5, 'below the grid\'s first step up'
+    assert command.acceleration == pytest.approx(driver.acceleration(free, snapshot))
+    cav = make_vehicle('cav', 'CAV', lane=1, position=60.0, speed=20.0)
+    leader = make_vehicle('lead', 'HV1', lane=1, position=95.0, speed=10.0)
+    snapshot = TrafficSnapshot([cav, leader])
+    mask = driver.shield.mask(cav, snapshot)
+    command = driver.command(cav, mask, snapshot)
+    allowed = driver.grid.acceleration_of[mask & driver.grid.rows(command.lane_change)]
+    assert allowed.max() < 0, 'the shield asks for braking here'
+    assert allowed.min() <= command.acceleration <= allowed.max()
+
+
+def test_commands_of_every_cav_match_the_grid_drivers_lane_changes(driver):
+    vehicles = [make_vehicle('a', 'CAV', lane=0, position=60.0),
+                make_vehicle('b', 'CAV', lane=1, position=200.0, edge='Highway_1')]
+    graph = GraphBuilder(GraphConfig(max_vehicles=10, sensing_range=30.0, feature_set='paper'),
+                         500.0, 25.0).build(vehicles)
+    commands = driver.commands(graph, TrafficSnapshot(vehicles))
+    grid_commands = decide(driver, vehicles)
+    assert set(commands) == {'a', 'b'}
+    assert {vid: c.lane_change for vid, c in commands.items()} == \
+        {vid: c.lane_change for vid, c in grid_commands.items()}

@@ -18,7 +18,7 @@ from exit_decision.agents.shield import Decision, Shield
 from exit_decision.config import RuleBasedConfig
 from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
-from exit_decision.traffic import HIGHWAY, TrafficSnapshot, VehicleState
+from exit_decision.traffic import HIGHWAY, CavCommand, TrafficSnapshot, VehicleState
 
 if TYPE_CHECKING:
     from exit_decision.env import ExitDecisionEnv
@@ -152,6 +152,35 @@ class RuleBasedDriver:
             distance = np.abs(grid.acceleration_of[candidates] - wanted)
             return int(candidates[np.argmin(distance)])
         return int(np.flatnonzero(mask)[0])
+
+    def command(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> CavCommand:
+        """The rules' command off the grid (the options' low level): the wanted lane change if
+        the mask allows it, and the wanted acceleration clipped into the mask's allowed range for
+        that lane. (A lane's allowed accelerations are an interval: every layer of the shield
+        allows all accelerations below a bound, or all above the hard-braking threshold.) Not
+        rounding down to the grid is worth most of the efficiency row the grid driver loses to
+        SUMO's drivers (docs/design.md, "Rule-based driver")."""
+        grid = self.grid
+        lane_change, wanted = self.preferred(vehicle, snapshot)
+        if lane_change and not (mask & grid.rows(lane_change)).any():
+            wanted = self.gap_search(vehicle, lane_change, snapshot, self.acceleration(vehicle, snapshot))
+            lane_change = 0
+        if not (mask & grid.rows(lane_change)).any():
+            lane_change = int(grid.lane_change_of[np.flatnonzero(mask)[0]])
+        allowed = grid.acceleration_of[mask & grid.rows(lane_change)]
+        return CavCommand(lane_change, float(np.clip(wanted, allowed.min(), allowed.max())))
+
+    def commands(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> dict[str, CavCommand]:
+        """Every CAV's ``command`` under the shield, front to back with gap reservation."""
+        chosen: dict[str, CavCommand] = {}
+
+        def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
+            command = chosen[vehicle.vehicle_id] = self.command(vehicle, mask, snapshot)
+            rows = np.flatnonzero(mask & self.grid.rows(command.lane_change))
+            return int(rows[np.argmin(np.abs(self.grid.acceleration_of[rows] - command.acceleration))])
+
+        self.shield.decide(snapshot, graph.cav_ids(), choose)
+        return chosen
 
     def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
         cav_ids = graph.cav_ids()
