@@ -1,17 +1,19 @@
 """Start the exit_decision stack on a ROS 2 Jazzy install:
 
-    ros2 launch exit_decision exit_decision.launch.py mode:=AGGI episodes:=1
+    ros2 launch exit_decision exit_decision.launch.py episodes:=1
 
 The nodes of the one table in ``exit_decision/ros/stack_nodes.py`` (the one `exit-decision
-stack` starts from): a recorder writing a bag, the graph builder and the decision node (in one
-process, `graph_and_decision`), the visualizer (markers on /exit_decision/markers; `visualizer:=false` leaves it out) and the
-bridge, which waits for the others. When the bridge has run its episodes, the launch shuts
-down. `ros2 launch exit_decision exit_decision.launch.py --show-args` lists the arguments.
+stack` starts from): a recorder writing a bag (by default a new time-stamped one under bags/,
+so every run works), the graph builder and the decision node (in one process,
+`graph_and_decision`; in mode AGGP unless `mode:=` says otherwise, as `exit-decision stack`),
+the visualizer (markers on /exit_decision/markers; `visualizer:=false` leaves it out) and the
+bridge, which waits for the others. The first node to exit ends the launch: the bridge when
+it has run its episodes, any other node when it cannot start (its one line says why: a bad
+argument, a bag path that exists) or dies, so the bridge is never left waiting for it.
+`ros2 launch exit_decision exit_decision.launch.py --show-args` lists the arguments.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
-from launch.event_handlers import OnProcessExit
-from launch.events import Shutdown
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -22,15 +24,14 @@ apply_dds_defaults()   # this process too (launch_ros may start a node in it), a
 
 
 def start_nodes(context):
-    """The table's nodes for the arguments given; the bridge's exit shuts the launch down."""
+    """The table's nodes for the arguments given; each one's exit shuts the launch down."""
     given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
     # a composed process is not named: a name would rename each of its nodes
-    nodes = {name: Node(package='exit_decision', executable=name, parameters=[parameters], output='screen',
-                        name=name if NODE_NAMES[name] == (name,) else None)
-             for name, parameters in plan(given)}
-    return [*nodes.values(),
-            RegisterEventHandler(OnProcessExit(target_action=nodes[BRIDGE], on_exit=[
-                EmitEvent(event=Shutdown(reason=f'{BRIDGE} has run its episodes'))]))]
+    return [Node(package='exit_decision', executable=name, parameters=[parameters], output='screen',
+                 name=name if NODE_NAMES[name] == (name,) else None,
+                 on_exit=[Shutdown(reason=f'{BRIDGE} has run its episodes' if name == BRIDGE else
+                                   f'{name} exited; the stack cannot go on without it')])
+            for name, parameters in plan(given)]
 
 
 def generate_launch_description():

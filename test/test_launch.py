@@ -2,6 +2,7 @@
 loopback default every process of the project starts with."""
 import importlib.util
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -26,9 +27,7 @@ class Recorded:
 
 def launch_description(monkeypatch, given: dict[str, str]):
     """The launch file's actions, its nodes resolved for ``given`` (launch-style text values)."""
-    names = {'launch': ['LaunchDescription'],
-             'launch.actions': ['DeclareLaunchArgument', 'EmitEvent', 'OpaqueFunction', 'RegisterEventHandler'],
-             'launch.event_handlers': ['OnProcessExit'], 'launch.events': ['Shutdown'],
+    names = {'launch': ['LaunchDescription'], 'launch.actions': ['DeclareLaunchArgument', 'OpaqueFunction', 'Shutdown'],
              'launch_ros': [], 'launch_ros.actions': ['Node']}
     for module, classes in names.items():
         stub = types.ModuleType(module)
@@ -56,7 +55,9 @@ def launch_description(monkeypatch, given: dict[str, str]):
 
 
 @pytest.mark.parametrize('given', [{}, {'visualizer': 'false', 'config_dir': '/tmp/c', 'episodes': '3'}])
-def test_launch_file_starts_the_tables_nodes_and_shuts_down_when_the_bridge_ends(monkeypatch, given):
+def test_launch_file_starts_the_tables_nodes_and_shuts_down_when_any_of_them_ends(monkeypatch, given):
+    """The bridge's exit ends the launch (its episodes are run), and so does any other node's: one
+    that cannot start (its one line says why) never leaves the bridge waiting for it."""
     declared, actions = launch_description(monkeypatch, given)
     assert declared == {name: argument.default for name, argument in ARGUMENTS.items()}
     nodes = [a for a in actions if type(a).__name__ == 'Node']
@@ -66,9 +67,32 @@ def test_launch_file_starts_the_tables_nodes_and_shuts_down_when_the_bridge_ends
     assert {n.kwargs['executable']: n.kwargs['name'] for n in nodes} == {
         executable: executable if names == (executable,) else None for executable, names in NODE_NAMES.items()
         if executable in dict(plan(given))}
-    handlers = [a.args[0] for a in actions if type(a).__name__ == 'RegisterEventHandler']
-    assert len(handlers) == 1 and handlers[0].kwargs['target_action'].kwargs['executable'] == BRIDGE
-    assert [type(e.kwargs['event']).__name__ for e in handlers[0].kwargs['on_exit']] == ['Shutdown']
+    assert len(actions) == len(nodes), 'nothing but the nodes'
+    for node in nodes:
+        (shutdown,) = node.kwargs['on_exit']
+        assert type(shutdown).__name__ == 'Shutdown', node.kwargs
+        reason = shutdown.kwargs['reason']
+        assert reason == (f'{BRIDGE} has run its episodes' if node.kwargs['executable'] == BRIDGE else
+                          f'{node.kwargs["executable"]} exited; the stack cannot go on without it')
+
+
+def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_a_new_bag(monkeypatch):
+    """One start mode: the mode `exit-decision stack` starts in (the matrix's aggressive punished
+    mode); no bag path given: the recorder's time-stamped default, so a second launch works; the
+    recorder's compression by default (`exit-decision stack` takes this argument's default too)."""
+    from exit_decision.config import load_project
+    from exit_decision.ros import bags, recorder
+
+    declared, actions = launch_description(monkeypatch, {})
+    assert declared['mode'] == load_project().mode_matrix.aggressive.punished == 'AGGP'
+    nodes = {a.kwargs['executable']: a.kwargs['parameters'][0] for a in actions}
+    assert nodes['graph_and_decision']['mode'] == 'AGGP'
+    assert declared['bag_path'] == '' and 'bag_path' not in nodes['recorder']
+    assert declared['compression'] == nodes['recorder']['compression'] == recorder.DEFAULT_COMPRESSION == 'zstd'
+    assert sorted(ARGUMENTS['compression'].choices) == sorted(bags.COMPRESSIONS)
+    refusal = "argument compression: 'gzip' is not allowed; allowed: zstd | lz4 | none"
+    with pytest.raises(ValueError, match=re.escape(refusal)):
+        plan({'compression': 'gzip'})
 
 
 def test_the_bridge_waits_for_every_state_listener_of_the_plan():
@@ -163,9 +187,8 @@ def test_a_users_explicit_discovery_range_wins():
 
 LAUNCH_PROCESS = f'''
 import importlib.util, os, sys, types
-for module, names in {{'launch': ['LaunchDescription'], 'launch.actions': ['DeclareLaunchArgument', 'EmitEvent',
-        'OpaqueFunction', 'RegisterEventHandler'], 'launch.event_handlers': ['OnProcessExit'],
-        'launch.events': ['Shutdown'], 'launch.substitutions': ['LaunchConfiguration'],
+for module, names in {{'launch': ['LaunchDescription'], 'launch.actions': ['DeclareLaunchArgument',
+        'OpaqueFunction', 'Shutdown'], 'launch.substitutions': ['LaunchConfiguration'],
         'launch_ros': [], 'launch_ros.actions': ['Node']}}.items():
     stub = sys.modules[module] = types.ModuleType(module)
     for name in names:

@@ -23,6 +23,7 @@ class Argument:
     default: str
     description: str
     kind: type = str    # what the text becomes: str, int, bool (true/false) or list (of str: [a, b] or a,b)
+    choices: tuple[str, ...] = ()   # the values allowed, if only some
 
 
 @dataclass(frozen=True)
@@ -40,8 +41,9 @@ class StackNode:
 
 
 ARGUMENTS: dict[str, Argument] = {
-    'mode': Argument('', "decision mode at start; empty: the decision node's default, the first mode of "
-                         "config/modes.yaml's matrix"),
+    # the start of `exit-decision stack` too: config/modes.yaml's aggressive punished mode (it switches to CONP)
+    'mode': Argument('AGGP', "decision mode at start, a mode of config/modes.yaml; empty: the decision node's "
+                             "default, the first mode of the matrix"),
     'algorithm': Argument('mdgqn_conditioned', 'a learned method of config/training.yaml with policies in policy_dir '
                                                '(shipped: mdgqn_conditioned, one network for every mode; gqn; mdgqn)'),
     'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
@@ -49,7 +51,11 @@ ARGUMENTS: dict[str, Argument] = {
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
     'seed': Argument('10000', 'seed of the first episode', int),
     'timing': Argument('synchronous', 'synchronous or realtime'),
-    'bag_path': Argument('bags/exit_decision', 'bag directory (must not exist)'),
+    'bag_path': Argument('', 'bag directory (must not exist); empty: the recorder\'s default, '
+                             'bags/exit_decision_<date>_<time>, a new one each run'),
+    # the recorder's default; the values of bags.COMPRESSIONS (this table imports no rclpy)
+    'compression': Argument('zstd', 'mcap chunk compression of the bag: zstd, lz4 or none',
+                            choices=('zstd', 'lz4', 'none')),
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
     'thread_priority': Argument('0', realtime.DESCRIPTION, int),
@@ -59,7 +65,7 @@ ARGUMENTS: dict[str, Argument] = {
 }
 
 NODES: tuple[StackNode, ...] = (
-    StackNode('recorder', ('bag_path', 'config_dir', 'use_sim_time'), listens_to_states=True),
+    StackNode('recorder', ('bag_path', 'compression', 'config_dir', 'use_sim_time'), listens_to_states=True),
     # the graph builder and the decision node in one process (ros/graph_and_decision.py): the
     # graph builder listens to the states and hands the decision node its graphs
     StackNode('graph_and_decision', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
@@ -75,7 +81,9 @@ _BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
 
 def typed(name: str, text: str):
     """The value of argument ``name`` given as ``text``; ValueError naming it and what is allowed."""
-    kind = ARGUMENTS[name].kind
+    kind, choices = ARGUMENTS[name].kind, ARGUMENTS[name].choices
+    if choices and text not in choices:
+        raise ValueError(f'argument {name}: {text!r} is not allowed; allowed: {" | ".join(choices)}')
     if kind is list:
         return [item.strip().strip('\'"') for item in text.strip().strip('[]').split(',') if item.strip()]
     try:
