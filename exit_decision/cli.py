@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import math
 import shlex
+import signal
 import sys
+import zipfile
 from pathlib import Path
 
 from tqdm import tqdm
@@ -14,11 +16,11 @@ from exit_decision.errors import PolicyError, UsageError
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--config-dir', type=Path, default=None,
+    parser.add_argument('--config-dir', type=existing('dir'), default=None,
                         help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
-    parser.add_argument('--scenario-override', type=Path, default=None,
+    parser.add_argument('--scenario-override', type=existing('file'), default=None,
                         help='YAML merged over scenario.yaml (a scenario variant)')
-    parser.add_argument('--override', type=Path, action='append', default=[],
+    parser.add_argument('--override', type=existing('file'), action='append', default=[],
                         help='YAML keyed by config file (env:, graph:, training:, ...) merged over the '
                              'config (repeatable)')
 
@@ -40,6 +42,27 @@ def _cpu_split(parser: argparse.ArgumentParser, what: str = '') -> None:
                         help=what + 'every node on every core, instead of the default with the normal scheduling: the '
                                     'decision path (bridge, graph builder, decision node) on the first half of the '
                                     'cores, the recorder and the visualizer on the rest')
+
+
+class OptionError(UsageError):
+    """An option's value the config refuses (an unknown mode, method, variant, step), found
+    before any work; reported in argparse's words: ``exit-decision <command>: error: argument
+    <option>: ...``, exit code 2."""
+
+
+def _known(option: str, value, check) -> None:
+    """Before any work: ``check(value)``, a lookup in the config that raises ConfigError for an
+    unknown name, as an OptionError."""
+    try:
+        check(value)
+    except ConfigError as error:
+        raise OptionError(f'argument {option}: {error}') from None
+
+
+def _known_algorithm(algorithm: str, config) -> None:
+    """--algorithm: a learned method of the config, or <method>_conditioned (OptionError)."""
+    from exit_decision.policy_names import CONDITIONED_SUFFIX
+    _known('--algorithm', algorithm.removesuffix(CONDITIONED_SUFFIX), config.training.method)
 
 
 def _check_thread_priority(priority: int) -> None:
@@ -65,6 +88,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                                args.override, [args.variant])[args.variant]
     else:
         config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.mode:
+        _known('--mode', args.mode, config.mode)
     env = ExitDecisionEnv(config, mode=args.mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
     hold = np.full(config.graph.max_vehicles, env.actions.index(0, 0.0))
     episodes, peak = [], 0
@@ -103,9 +128,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     from exit_decision.learning.trainer import CONDITIONED, Trainer
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
-    config.training.method(args.algorithm)
+    _known('--algorithm', args.algorithm, config.training.method)
     if args.mode != CONDITIONED:
-        config.mode(args.mode)
+        _known('--mode', args.mode, config.mode)
     episodes = args.episodes or config.training.episodes
     steps = config.training.of_method(args.algorithm).environment_steps
     if args.episodes and steps:
@@ -113,7 +138,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f'{steps}; give one budget (drop --episodes, or set environment_steps to null with --override)')
     out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
     if args.reward_variant:
-        config.reward(args.reward_variant)
+        _known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
     trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir)
     policy = trainer.run(episodes, resume=args.resume, init=args.init)
@@ -126,6 +151,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.report import evaluate_runs
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    for mode in args.mode:
+        _known('--mode', mode, config.mode)
     modes = args.mode or list(config.training.conditioning.validation_modes)
     sanity_drivers = {}
     if any(':' in driver for driver in args.driver):
@@ -153,7 +180,17 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     """Train and evaluate each step of config/ablation.yaml; print the table."""
     from exit_decision.experiments.ablation import markdown, run_ablation
 
-    mode = args.mode or load_project(args.config_dir).env.mode
+    config = load_project(args.config_dir)
+    mode = args.mode or config.env.mode
+    _known('--algorithm', args.algorithm, config.training.method)
+    _known('--mode', mode, config.mode)
+    if args.only:
+        from exit_decision.experiments.ablation import ablation_steps
+        steps = len(ablation_steps((args.config_dir or default_config_dir()) / 'ablation.yaml'))
+        for index in args.only:
+            if index >= steps:
+                raise OptionError(f'argument --only: {index}: expected a step index of ablation.yaml, '
+                                  f'0..{steps - 1}')
     table = run_ablation(args.out, args.algorithm, mode, args.episodes, args.test_episodes, args.seed,
                          args.test_seed, args.only, args.config_dir)
     print(markdown(table))
@@ -167,6 +204,8 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     sweep = args.sweep or (args.config_dir or default_config_dir()) / 'reward_sanity.yaml'
+    for variant in args.variant:
+        _known('--variant', variant, config.reward)
     variants = args.variant or [config.env.reward_variant]
     if args.calibrate:
         episodes = args.out / 'episodes.csv'
@@ -214,39 +253,56 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from datetime import datetime
 
     from exit_decision.evaluation.metrics import markdown_table, summarize
-    from exit_decision.ros.launcher import free_bag_path, run_stack
+    from exit_decision.ros.launcher import StackError, free_bag_path, run_stack
 
-    from exit_decision.policy_names import CONDITIONED_SUFFIX
     from exit_decision.ros.decision_node import ALGORITHMS
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     _check_thread_priority(args.thread_priority)
     matrix = config.mode_matrix
-    config.training.method(args.algorithm.removesuffix(CONDITIONED_SUFFIX))   # a known method, or one line naming them
+    _known_algorithm(args.algorithm, config)
     mode = args.mode or matrix.aggressive.punished
     switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
+    _known('--mode', mode, config.mode)
+    if switch_to:
+        _known('--switch-to', switch_to, config.mode)
+        if args.switch_at >= config.scenario.max_steps:
+            raise OptionError(f'argument --switch-at: {args.switch_at}: expected a step below the scenario\'s '
+                              f'max_steps ({config.scenario.max_steps}), or --switch-to "" for no switch')
     # another method than the shipped ones: the node loads its policies for the modes of this run only
     modes = [] if args.algorithm in ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
-    run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
-                    bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
-                    switch_to=switch_to, switch_at_step=args.switch_at,
-                    config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
-                    visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
-                    cpu_split=not args.no_cpu_split)
+    try:
+        run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
+                        bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
+                        switch_to=switch_to, switch_at_step=args.switch_at,
+                        config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
+                        visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
+                        cpu_split=not args.no_cpu_split, compression=args.compression)
+    except StackError as error:   # every node stopped already
+        print(f'exit-decision: stack: {error}', file=sys.stderr)
+        return 1
+    if run.stopped_by:
+        print(f'stopped by {run.stopped_by}: {len(run.episodes)} episode(s) finished; the nodes stopped')
     if run.mode_switch:
         print(run.mode_switch)
+    elif switch_to:
+        print(f'no mode switch: the first episode did not reach step {args.switch_at}')
     if run.episodes:
-        label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switch_to else '')
+        switched = run.mode_switch.endswith('accepted')
+        label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switched else '')
         print(markdown_table([(label, summarize(run.episodes))]))
     else:
-        print('no episode finished (see the logs)')
+        print('no episode finished' + ('' if run.stopped_by else ' (see the logs)'))
     print(f'bag: {bag}')
     failed = {name: code for name, code in run.return_codes.items() if code not in (0, -2, -9)}
     if failed:
         print(f'nodes that failed: {failed}', file=sys.stderr)
-    return 0 if run.episodes and not failed else 1
+        return 1
+    if run.stopped_by:   # until stopped (--episodes 0): the end asked for; else the run was cut short
+        return 0 if args.episodes == 0 else 128 + signal.Signals[run.stopped_by].value
+    return 0 if run.episodes else 1
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -256,6 +312,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from exit_decision.ros.replay import replay_decisions
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.mode:
+        _known('--mode', args.mode, config.mode)
+    if args.algorithm:
+        _known_algorithm(args.algorithm, config)
     try:
         report = replay_decisions(args.bag, config, args.policy_dir or default_policy_dir(), mode=args.mode,
                                   algorithm=args.algorithm, policy_file=args.policy, rebuild_graph=args.rebuild_graph)
@@ -311,10 +371,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     configs = load_variants(args.variants or config_dir / 'variants.yaml', args.config_dir, args.override,
                             args.variant)
     base = next(iter(configs.values()))
+    for mode in args.mode:
+        _known('--mode', mode, base.mode)
     modes = args.mode or list(base.training.conditioning.validation_modes)
-    for mode in modes:
-        base.mode(mode)
     methods = base.training.method_names if args.train == ['all'] else args.train
+    for method in methods:
+        _known('--train', method, base.training.method)
     runs, trained, training_mode, budget, trainings = [], {}, base.env.mode, None, SweepResult()
     if methods:
         runs, budgeted, budget = load_comparison_training(args.training or config_dir / 'comparison.yaml',
@@ -380,14 +442,72 @@ def number(kind: type, low: float, inclusive: bool = True):
     return parse
 
 
+def existing(kind: str):
+    """An argparse type: the path of an existing file (``kind`` 'file') or directory ('dir')."""
+    def parse(text: str) -> Path:
+        path = Path(text)
+        if not (path.is_dir() if kind == 'dir' else path.is_file()):
+            found = ' (a directory)' if kind == 'file' and path.is_dir() else ' (a file)' if path.exists() else ''
+            raise argparse.ArgumentTypeError(f'{text!r}: no such {"directory" if kind == "dir" else "file"}{found}')
+        return path
+    return parse
+
+
+def checkpoint(text: str) -> Path:
+    """An argparse type: a checkpoint training wrote (policy.pt, last.pt), told from any other
+    file by its format, torch.save's zip archive with a data.pkl, without loading torch (its
+    content is checked when it is loaded)."""
+    path = existing('file')(text)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            pickled = any(name.rpartition('/')[2] == 'data.pkl' for name in archive.namelist())
+    except (zipfile.BadZipFile, OSError):
+        pickled = False
+    if not pickled:
+        raise argparse.ArgumentTypeError(f'{text!r}: not a checkpoint (a policy.pt or last.pt written by training)')
+    return path
+
+
+def new_path(text: str) -> Path:
+    """An argparse type: a path that does not exist yet (what is written there is never merged)."""
+    if Path(text).exists():
+        raise argparse.ArgumentTypeError(f'{text!r} exists already; allowed: a path that does not exist yet')
+    return Path(text)
+
+
+def comparison_method(text: str) -> str:
+    """An argparse type: a reference driver or a policy checkpoint (compare --method)."""
+    from exit_decision.evaluation.report import REFERENCE_DRIVERS
+    if text in REFERENCE_DRIVERS:
+        return text
+    try:
+        return str(checkpoint(text))
+    except argparse.ArgumentTypeError as error:
+        raise argparse.ArgumentTypeError(f'{error}; allowed: {", ".join(REFERENCE_DRIVERS)} or a policy.pt') from None
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, its usage errors in one line (argument, value, what is allowed) and
+    exit code 2; the usage is in --help."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: error: {message}\n')
+
+
+#: option types: counts, seeds and step numbers
+COUNT, SEED, STEP = number(int, 1), number(int, 0), number(int, 0)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog='exit-decision', description=__doc__)
+    from exit_decision.ros.stack_nodes import ARGUMENTS as STACK_ARGUMENTS   # rclpy-free, as this parser
+
+    parser = Parser(prog='exit-decision', description=__doc__)
     commands = parser.add_subparsers(dest='command', required=True)
 
     run = commands.add_parser('run', help='run episodes of the scenario and print the metrics table')
     _common(run)
-    run.add_argument('--episodes', type=int, default=1)
-    run.add_argument('--seed', type=int, default=0, help='seed of the first episode (then +1 each)')
+    run.add_argument('--episodes', type=COUNT, default=1)
+    run.add_argument('--seed', type=SEED, default=0, help='seed of the first episode (then +1 each)')
     run.add_argument('--driver', choices=['sumo', 'hold'], default='sumo',
                      help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to the target exit (the '
                           'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
@@ -407,20 +527,20 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument('--mode', default='conditioned',
                        help='conditioned (one network for every mode, trained on all by relabelling) or a '
                             'mode of config/modes.yaml (a per-mode network)')
-    train.add_argument('--episodes', type=int, default=None,
+    train.add_argument('--episodes', type=COUNT, default=None,
                        help="RL episodes (default: config/training.yaml's episodes; refused when the config's budget "
                             "is environment_steps)")
-    train.add_argument('--seed', type=int, default=0)
+    train.add_argument('--seed', type=SEED, default=0)
     train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
-    train.add_argument('--resume', type=Path, default=None, help='a last.pt to continue from')
-    train.add_argument('--init', type=Path, default=None,
+    train.add_argument('--resume', type=checkpoint, default=None, help='a last.pt to continue from')
+    train.add_argument('--init', type=checkpoint, default=None,
                        help='a policy.pt whose network starts the RL phase (no pre-training)')
     train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
     train.set_defaults(func=cmd_train)
 
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
     _common(evaluate)
-    evaluate.add_argument('--policy', type=Path, action='append', default=[], help='a policy.pt (repeatable)')
+    evaluate.add_argument('--policy', type=checkpoint, action='append', default=[], help='a policy.pt (repeatable)')
     evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
                           help='a reference driver (repeatable): sumo (SUMO\'s own drivers), rule_based '
                                '(the neutral teacher, env.yaml\'s rule_based) or rule_based:<name> (a driver '
@@ -428,8 +548,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument('--mode', action='append', default=[],
                           help='score (and run a conditioned policy) under this mode (repeatable; default: '
                                'training.yaml conditioning.validation_modes); one CSV per run and mode')
-    evaluate.add_argument('--episodes', type=int, default=50)
-    evaluate.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
+    evaluate.add_argument('--episodes', type=COUNT, default=50)
+    evaluate.add_argument('--seed', type=SEED, default=10_000, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
                           help='directory for the CSV and Markdown tables')
     evaluate.add_argument('--show', type=number(int, 0), default=0, metavar='N',
@@ -439,21 +559,29 @@ def build_parser() -> argparse.ArgumentParser:
 
     stack = commands.add_parser('stack', help='run the ROS 2 stack (bridge, graph builder, decision node, '
                                               'recorder) for an episode, with a mode switch')
-    stack.add_argument('--config-dir', type=Path, default=None)
+    stack.add_argument('--config-dir', type=existing('dir'), default=None)
     stack.add_argument('--mode', default=None,
                        help='decision mode at start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-to', default=None,
                        help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
                             'of config/modes.yaml\'s matrix)')
-    stack.add_argument('--switch-at', type=int, default=300, help='step of the first episode to switch at')
+    stack.add_argument('--switch-at', type=STEP, default=300,
+                       help='step of the first episode to switch at (below the scenario\'s max_steps)')
     stack.add_argument('--algorithm', default='mdgqn_conditioned',
                        help='a learned method of config/training.yaml, <method>_conditioned for one network for every '
                             'mode; shipped policies: mdgqn_conditioned, gqn, mdgqn (others: --policy-dir with '
                             '<algorithm>_<mode>/policy.pt)')
-    stack.add_argument('--episodes', type=int, default=1)
-    stack.add_argument('--seed', type=int, default=10_000)
-    stack.add_argument('--bag', type=Path, default=None, help='bag directory (default bags/exit_decision_<time>)')
-    stack.add_argument('--policy-dir', type=Path, default=None, help='default: the shipped policies/')
+    stack.add_argument('--episodes', type=number(int, 0), default=1,
+                       help='episodes to run (default 1); 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
+                            'finish the bag)')
+    stack.add_argument('--seed', type=SEED, default=10_000)
+    stack.add_argument('--bag', type=new_path, default=None,
+                       help='bag directory, a new one (default bags/exit_decision_<time>)')
+    stack.add_argument('--compression', choices=STACK_ARGUMENTS['compression'].choices,
+                       default=STACK_ARGUMENTS['compression'].default,
+                       help='mcap chunk compression of the bag (default %(default)s; none: about 3 MB per simulated '
+                            'minute)')
+    stack.add_argument('--policy-dir', type=existing('dir'), default=None, help='default: the shipped policies/')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     _thread_priority(stack)
@@ -466,8 +594,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
     replay.add_argument('--algorithm', default=None,
                         help='replay with this learned method\'s policies in --policy-dir (default: the recorded one)')
-    replay.add_argument('--policy', type=Path, default=None, help='a policy.pt to replay with instead')
-    replay.add_argument('--policy-dir', type=Path, default=None)
+    replay.add_argument('--policy', type=checkpoint, default=None, help='a policy.pt to replay with instead')
+    replay.add_argument('--policy-dir', type=existing('dir'), default=None)
     replay.add_argument('--rebuild-graph', action='store_true',
                         help='decide on graphs the graph builder makes again from the recorded states (a change '
                              'to the graph module shows too; a bag recorded without the graph topic needs it)')
@@ -493,7 +621,8 @@ def build_parser() -> argparse.ArgumentParser:
                                             'exists) of the episodes of a bag')
     show.add_argument('bag', type=Path, help='a bag directory written by the recorder (exit-decision stack)')
     show.add_argument('--out', type=Path, default=None, help='output directory (default: <BAG>_show beside the bag)')
-    show.add_argument('--config-dir', type=Path, default=None, help='the config the bag was recorded with (the road)')
+    show.add_argument('--config-dir', type=existing('dir'), default=None,
+                      help='the config the bag was recorded with (the road)')
     show.add_argument('--episode', type=number(int, 0), default=None, help='only this episode (default: every one)')
     show.add_argument('--start', type=number(float, 0), default=None, help='[s] simulation time the window starts at')
     show.add_argument('--end', type=number(float, 0), default=None, help='[s] simulation time the window ends at')
@@ -504,25 +633,26 @@ def build_parser() -> argparse.ArgumentParser:
     show.set_defaults(func=cmd_show)
 
     ablation = commands.add_parser('ablation', help='train + evaluate each step of config/ablation.yaml')
-    ablation.add_argument('--config-dir', type=Path, default=None)
+    ablation.add_argument('--config-dir', type=existing('dir'), default=None)
     ablation.add_argument('--algorithm', default='mdgqn', help='a method of config/training.yaml')
     ablation.add_argument('--mode', default=None, help='decision mode (default: env.yaml\'s mode)')
-    ablation.add_argument('--episodes', type=int, default=40, help='training episodes per step')
-    ablation.add_argument('--test-episodes', type=int, default=10)
-    ablation.add_argument('--seed', type=int, default=0)
-    ablation.add_argument('--test-seed', type=int, default=10_000)
-    ablation.add_argument('--only', type=int, nargs='*', default=None, help='step indices to run')
+    ablation.add_argument('--episodes', type=COUNT, default=40, help='training episodes per step')
+    ablation.add_argument('--test-episodes', type=COUNT, default=10)
+    ablation.add_argument('--seed', type=SEED, default=0)
+    ablation.add_argument('--test-seed', type=SEED, default=10_000)
+    ablation.add_argument('--only', type=STEP, nargs='*', default=None, help='step indices to run')
     ablation.add_argument('--out', type=Path, default=Path('runs/ablation'))
     ablation.set_defaults(func=cmd_ablation)
 
     sanity = commands.add_parser('reward-sanity', help='score a sweep of rule-based drivers under every mode')
     _common(sanity)
-    sanity.add_argument('--sweep', type=Path, default=None, help='drivers (default: config/reward_sanity.yaml)')
+    sanity.add_argument('--sweep', type=existing('file'), default=None,
+                        help='drivers (default: config/reward_sanity.yaml)')
     sanity.add_argument('--variant', action='append', default=[],
                         help='reward variant to score under (repeatable; default: env.yaml\'s)')
-    sanity.add_argument('--episodes', type=int, default=30, help='paired seeds per driver')
-    sanity.add_argument('--seed', type=int, default=20_000, help='first seed (not a test or training seed)')
-    sanity.add_argument('--jobs', type=int, default=2, help='worker processes (one simulation each)')
+    sanity.add_argument('--episodes', type=COUNT, default=30, help='paired seeds per driver')
+    sanity.add_argument('--seed', type=SEED, default=20_000, help='first seed (not a test or training seed)')
+    sanity.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
     sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'))
     sanity.add_argument('--calibrate', action='store_true',
                         help='no simulation: search row-scale multipliers on --out\'s episodes.csv')
@@ -530,49 +660,50 @@ def build_parser() -> argparse.ArgumentParser:
 
     tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
     _common(tradeoff)
-    tradeoff.add_argument('--policy', type=Path, default=Path('policies/mdgqn_conditioned/policy.pt'))
-    tradeoff.add_argument('--episodes', type=int, default=20, help='seeds per weight point')
-    tradeoff.add_argument('--seed', type=int, default=40_000, help='first seed (not a test or training seed)')
+    tradeoff.add_argument('--policy', type=checkpoint, default=Path('policies/mdgqn_conditioned/policy.pt'))
+    tradeoff.add_argument('--episodes', type=COUNT, default=20, help='seeds per weight point')
+    tradeoff.add_argument('--seed', type=SEED, default=40_000, help='first seed (not a test or training seed)')
     tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'))
     tradeoff.set_defaults(func=cmd_tradeoff)
 
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
-    plot.add_argument('--runs', type=Path, nargs='*', default=[], help='training run directories')
-    plot.add_argument('--evaluation', type=Path, default=None, help='an evaluate --out directory')
+    plot.add_argument('--runs', type=existing('dir'), nargs='*', default=[], help='training run directories')
+    plot.add_argument('--evaluation', type=existing('dir'), default=None, help='an evaluate --out directory')
     plot.add_argument('--out', type=Path, default=Path('docs/figures'))
     plot.set_defaults(func=cmd_plot)
 
     report = commands.add_parser('report', help='write docs/results.md from the generated results')
-    report.add_argument('--evaluation', type=Path, default=Path('docs/results/evaluation'))
-    report.add_argument('--config-dir', type=Path, default=None)
-    report.add_argument('--runs', type=Path, nargs='*', default=[Path('policies/mdgqn_conditioned')],
+    report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'))
+    report.add_argument('--config-dir', type=existing('dir'), default=None)
+    report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies/mdgqn_conditioned')],
                         help='training run directories (validation history, wall time)')
-    report.add_argument('--sanity', type=Path, default=Path('docs/results/reward_sanity'))
-    report.add_argument('--tradeoff', type=Path, default=Path('docs/results/tradeoff'))
-    report.add_argument('--figures', type=Path, default=Path('docs/figures'))
+    report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity'))
+    report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
+    report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'))
     report.add_argument('--out', type=Path, default=Path('docs/results.md'))
     report.set_defaults(func=cmd_report)
 
     compare = commands.add_parser('compare', help='every method on every scenario variant (config/variants.yaml) on '
                                                   'the same seeds, as Ray tasks; a CSV per cell, reruns skip done cells')
-    compare.add_argument('--config-dir', type=Path, default=None)
-    compare.add_argument('--override', type=Path, action='append', default=[],
+    compare.add_argument('--config-dir', type=existing('dir'), default=None)
+    compare.add_argument('--override', type=existing('file'), action='append', default=[],
                          help='YAML keyed by config file merged over the config of every variant (repeatable)')
-    compare.add_argument('--variants', type=Path, default=None, help='default: <config dir>/variants.yaml')
+    compare.add_argument('--variants', type=existing('file'), default=None, help='default: <config dir>/variants.yaml')
     compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
-    compare.add_argument('--method', action='append', default=[],
+    compare.add_argument('--method', type=comparison_method, action='append', default=[],
                          help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
                               'policies/mdgqn_conditioned/policy.pt unless --train is given)')
     compare.add_argument('--train', action='append', default=[],
                          help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
                               'scenario, with the seeds and budget of --training; finished runs are reused')
-    compare.add_argument('--training', type=Path, default=None, help='default: <config dir>/comparison.yaml')
+    compare.add_argument('--training', type=existing('file'), default=None,
+                         help='default: <config dir>/comparison.yaml')
     compare.add_argument('--report', type=Path, default=None,
                          help='the comparison page (figures beside it; default <out>/comparison.md)')
     compare.add_argument('--mode', action='append', default=[],
                          help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
     compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')
-    compare.add_argument('--seed', type=int, default=10_000, help='first test seed (never used in training)')
+    compare.add_argument('--seed', type=SEED, default=10_000, help='first test seed (never used in training)')
     compare.add_argument('--out', type=Path, default=Path('runs/compare'))
     compare.add_argument('--address', default=None,
                          help='a Ray cluster to run on (its nodes need this package, SUMO and the policy files); '
@@ -586,10 +717,10 @@ def build_parser() -> argparse.ArgumentParser:
                                               'the compare sweep with 1 and every local worker; ROS)')
     _common(bench)
     bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'sweep', 'ros', 'all'], default='all')
-    bench.add_argument('--steps', type=int, default=1000, help='ros: synchronous steps to measure')
-    bench.add_argument('--policy-dir', type=Path, default=None, help='ros: default the shipped policies/')
-    bench.add_argument('--episodes', type=int, default=2, help='episodes per measurement (sweep: seeds per cell)')
-    bench.add_argument('--seed', type=int, default=0)
+    bench.add_argument('--steps', type=COUNT, default=1000, help='ros: synchronous steps to measure')
+    bench.add_argument('--policy-dir', type=existing('dir'), default=None, help='ros: default the shipped policies/')
+    bench.add_argument('--episodes', type=COUNT, default=2, help='episodes per measurement (sweep: seeds per cell)')
+    bench.add_argument('--seed', type=SEED, default=0)
     _thread_priority(bench, 'ros: the benchmark\'s observer too, once the nodes are started; ')
     _cpu_split(bench, 'ros: ')
     bench.set_defaults(func=cmd_bench)
@@ -602,6 +733,9 @@ def main(argv: list[str] | None = None) -> int:
     args.invocation = 'exit-decision ' + shlex.join(argv)   # what the outputs say made them
     try:
         return args.func(args)
+    except OptionError as error:
+        print(f'exit-decision {args.command}: error: {error}', file=sys.stderr)
+        return 2
     except (ConfigError, PolicyError, UsageError) as error:
         print(f'exit-decision: {error}', file=sys.stderr)
         return 2

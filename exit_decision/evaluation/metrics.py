@@ -9,10 +9,11 @@ from exit_decision.episode_log import METRICS
 
 
 def summarize(episodes: Sequence[dict[str, float]]) -> dict[str, tuple[float, float]]:
-    """Mean and standard deviation of each metric over episodes (NaNs ignored)."""
+    """Mean and standard deviation of each metric over episodes (NaNs ignored; a metric the
+    episodes do not carry, as the stack's episode events lack the CAV-only ones: NaN)."""
     table = {}
     for name in METRICS:
-        values = np.array([e[name] for e in episodes], dtype=float)
+        values = np.array([e.get(name, np.nan) for e in episodes], dtype=float)
         finite = values[np.isfinite(values)]
         table[name] = (float(finite.mean()), float(finite.std())) if finite.size else (np.nan, np.nan)
     return table

@@ -7,6 +7,13 @@ mode once mid-run through the decision node's standard set_parameters service (w
 param set` calls). When the bridge has run its episodes, the others get SIGINT (SIGKILL if
 they hang), and the episode metrics (from the episode events) and the bag path are returned.
 Every process inherits the loopback default that importing ``common`` sets.
+
+The nodes run in sessions of their own (a Ctrl-C in the terminal reaches only the launcher),
+so the launcher stops them whatever ends the run: the bridge's last episode; SIGINT (Ctrl-C)
+or SIGTERM to the launcher (the run ends early, the bag is finished: ``StackRun.stopped_by``);
+or a node that exits before the run ends (it could not start, or died): then ``StackError``
+names the node, its exit code and its log's last line (a node that cannot start says why in
+one line).
 """
 from __future__ import annotations
 
@@ -15,6 +22,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,12 +65,47 @@ def start_node(name: str, parameters: dict[str, object], log: Path) -> subproces
                             stderr=subprocess.STDOUT, start_new_session=True)
 
 
+class StackError(RuntimeError):
+    """The stack could not run: a node exited early, the nodes did not come up or the run did
+    not finish in time. One line: what happened, and where the logs are."""
+
+
 @dataclass
 class StackRun:
     bag_path: Path
     episodes: list[dict[str, float]] = field(default_factory=list)
     mode_switch: str = ''          # what the set_parameters call answered
     return_codes: dict[str, int] = field(default_factory=dict)
+    stopped_by: str = ''           # SIGINT or SIGTERM: the launcher was stopped before the run ended
+
+
+def last_line(log: Path) -> str:
+    """The last non-empty line of a node's log (a node that cannot start says why in it)."""
+    try:
+        lines = log.read_text(errors='replace').strip().splitlines()
+    except OSError:
+        return ''
+    return lines[-1].strip() if lines else ''
+
+
+@contextlib.contextmanager
+def stop_signals():
+    """SIGINT and SIGTERM noted in the list yielded (their names), not raised, while the block
+    runs, so the launcher's loops end at their next turn and stop the nodes; the handlers
+    before are restored after. Outside the main thread (no signals there) nothing changes."""
+    received: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def note(signum: int, frame: object) -> None:
+        received.append(signal.Signals(signum).name)
+    before = {sig: signal.signal(sig, note) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)   # None: not set from Python
 
 
 class StackLauncher:
@@ -75,11 +118,14 @@ class StackLauncher:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.processes[name] = start_node(name, self.parameters.get(name, {}), self.log_dir / f'{name}.log')
 
-    def check_alive(self) -> None:
+    def check_alive(self, bridge_too: bool = False) -> None:
+        """StackError if a node has exited (the bridge too, if ``bridge_too``): the node, its exit
+        code and the last line of its log."""
         for name, process in self.processes.items():
-            if process.poll() is not None and name != BRIDGE:
-                tail = (self.log_dir / f'{name}.log').read_text()[-2000:]
-                raise RuntimeError(f'{name} exited with code {process.returncode}:\n{tail}')
+            if process.poll() is not None and (name != BRIDGE or bridge_too):
+                log = self.log_dir / f'{name}.log'
+                raise StackError(f'{name} exited with code {process.returncode}: '
+                                 f'{last_line(log) or "(nothing logged)"} (log: {log})')
 
     def stop(self, timeout: float = 10.0) -> dict[str, int]:
         for process in self.processes.values():
@@ -99,20 +145,22 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
               timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False,
-              thread_priority: int = 0, cpu_split: bool = True) -> StackRun:
+              thread_priority: int = 0, cpu_split: bool = True, compression: str = 'zstd') -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
     of the first episode (through the parameter service); ``modes``: the modes whose policies
     the decision node loads (empty: every mode); ``visualizer``: also publish the
     scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock;
     ``thread_priority``: real-time priority of the nodes on the decision path (0: normal);
     ``cpu_split``: the decision path and the onlookers (this launcher's helper node among them)
-    on cores of their own."""
+    on cores of their own; ``compression``: the bag's chunk compression (none, zstd or lz4).
+    SIGINT or SIGTERM ends the run early (``StackRun.stopped_by``); a node exiting before the
+    end raises StackError. Either way every node is stopped and the bag closed."""
     if bag_path.exists():
         raise FileExistsError(f'{bag_path}: the bag directory exists already')
     arguments = {'mode': mode, 'modes': list(modes), 'algorithm': algorithm, 'episodes': episodes, 'seed': seed,
                  'timing': timing, 'bag_path': bag_path, 'visualizer': visualizer, 'use_sim_time': use_sim_time,
                  'config_dir': config_dir, 'policy_dir': policy_dir, 'thread_priority': thread_priority,
-                 'cpu_split': cpu_split}
+                 'cpu_split': cpu_split, 'compression': compression}
     # this launcher's helper node listens to the states too: the bridge waits for it as well
     started = plan(arguments, extra_listeners=1)
     split = cores(arguments)
@@ -140,26 +188,29 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
     client = node.create_client(SetParameters, '/decision_node/set_parameters')
     onlooking = contextlib.ExitStack()   # this process back on its cores however the run ends
+    # after the helper node's rclpy.init (whose own SIGINT handler would take the signal)
+    stopping = onlooking.enter_context(stop_signals())
     try:
         for name in nodes:
             launcher.start(name)
         deadline = time.monotonic() + 120.0
         # the recorder records the markers from the first one on
-        while (node.count_subscribers(STATES_TOPIC) < listeners or not client.service_is_ready()
-               or 'visualizer' in nodes and node.count_publishers(MARKERS_TOPIC) < 1):
+        while not stopping and (node.count_subscribers(STATES_TOPIC) < listeners or not client.service_is_ready()
+                                or 'visualizer' in nodes and node.count_publishers(MARKERS_TOPIC) < 1):
             launcher.check_alive()
             if time.monotonic() > deadline:
-                raise TimeoutError(f'the nodes did not come up within 120 s (logs: {log_dir})')
+                raise StackError(f'the nodes did not come up within 120 s (logs: {log_dir})')
             probe.spin_once(0.2)
-        launcher.start(BRIDGE)
-        # once every node is started: a node takes only cores it could use at its start
-        onlooking.enter_context(pinned(split and split[1]))
+        if not stopping:
+            launcher.start(BRIDGE)
+            # once every node is started: a node takes only cores it could use at its start
+            onlooking.enter_context(pinned(split and split[1]))
         switched = switch_to is None
         deadline = time.monotonic() + timeout
-        while launcher.processes[BRIDGE].poll() is None:
+        while not stopping and launcher.processes[BRIDGE].poll() is None:
             launcher.check_alive()
             if time.monotonic() > deadline:
-                raise TimeoutError(f'the stack did not finish within {timeout} s')
+                raise StackError(f'the stack did not finish within {timeout} s (logs: {log_dir})')
             probe.spin_once(0.05)
             if not switched and state['episode'] == 0 and state['step'] >= switch_at_step:
                 result = probe.set_parameter(client, 'mode', switch_to, timeout=10.0)
@@ -167,9 +218,12 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                                    + ('accepted' if result and result.successful else
                                       f'refused ({result.reason if result else "no answer"})'))
                 switched = True
+        if not stopping:
+            launcher.check_alive(bridge_too=launcher.processes[BRIDGE].returncode != 0)
         end = time.monotonic() + 5.0   # the last episode event may still be in flight
-        while state['ended'] < episodes and time.monotonic() < end:
+        while not stopping and state['ended'] < episodes and time.monotonic() < end:
             probe.spin_once(0.1)
+        run.stopped_by = stopping[0] if stopping else ''
     finally:
         with onlooking:
             run.return_codes = launcher.stop()
