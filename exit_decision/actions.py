@@ -10,6 +10,9 @@ import numpy as np
 from exit_decision.config import ActionGridConfig
 from exit_decision.traffic import CavCommand
 
+#: the action of a graph row that did not act (no CAV in it, or one not deciding)
+NO_ACTION = -1
+
 
 class ActionGrid:
     def __init__(self, config: ActionGridConfig):

@@ -11,7 +11,7 @@ PettingZoo agent per CAV, so RLlib, TorchRL or any PettingZoo user trains withou
   live episode always has an agent.
 - action: an index of the action grid (``exit_decision.actions``, 81 by default); an agent
   given no action keeps its lane and speed.
-- reward: the trainer's per-CAV credit (``DecisionRecord.credit``: the CAV's own part of
+- reward: the trainer's per-CAV credit (``reward.credit``: the CAV's own part of
   ``info['reward_vector']`` plus an equal share of the shared part) scored with
   ``reward.scalar`` under the env's mode.
 - observation (N, F + 2) float32, a fixed-size ego view of the graph: row 0 is the agent's
@@ -33,10 +33,10 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from exit_decision.actions import NO_ACTION
 from exit_decision.config import load_project
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.learning.replay import NO_ACTION, DecisionRecord
-from exit_decision.reward import scalar
+from exit_decision.reward import credit, scalar
 from exit_decision.traffic import vehicle_id_of
 
 #: the extra columns of a PettingZoo observation, after the graph's features
@@ -136,13 +136,11 @@ class HighwayExitParallelEnv(ParallelEnv):
         row_of = graph.row_of()
         acting = list(self.agents)
         chosen = np.full(graph.num_nodes, NO_ACTION, np.int64)
-        masks = np.zeros((graph.num_nodes, env.actions.size), bool)
         for agent in acting:
             chosen[row_of[agent]] = int(actions.get(agent, self._keep))
-            masks[row_of[agent]] = self._masks[agent]
         _, _, terminated, truncated, info = env.step(np.where(chosen >= 0, chosen, self._keep))
-        credit = DecisionRecord(graph, chosen, masks, *info['reward_vector']).credit()
-        scores = scalar(credit, env.mode_weights)
+        own, shared = info['reward_vector']
+        scores = scalar(credit(own, shared, chosen >= 0), env.mode_weights)
         if not (terminated or truncated):
             terminated, truncated = self._hold_until_a_cav()
         self._live(terminated, truncated)

@@ -92,6 +92,16 @@ def scalar(vector: np.ndarray, weights: np.ndarray) -> np.ndarray | float:
     return (np.asarray(vector) * weights).sum(axis=(-2, -1))
 
 
+def credit(own: np.ndarray, shared: np.ndarray, acting: np.ndarray) -> np.ndarray:
+    """(N, 4, 2) per-CAV credit of one decision's reward vectors: each acting row's own terms
+    (``own``, (N, 4, 2)) plus an equal share of the terms no CAV owns (``shared``, (4, 2));
+    zeros on the rows that did not act (``acting``, (N,) bool)."""
+    shares = np.where(acting[:, None, None], own, 0.0)
+    if acting.any():
+        shares[acting] += shared / acting.sum()
+    return shares
+
+
 def check_weight_input(weights: Sequence[float]) -> str | None:
     """Why six numbers are not a valid mode (None if they are): four non-negative decision
     weights summing to 1, then non-negative incentive and punishment weights summing to 1."""

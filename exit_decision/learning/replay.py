@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from exit_decision.actions import NO_ACTION
 from exit_decision.graph import TrafficGraph
-
-NO_ACTION = -1
+from exit_decision.reward import credit
 
 
 @dataclass(frozen=True)
@@ -35,11 +35,7 @@ class DecisionRecord:
 
     def credit(self) -> np.ndarray:
         """(N, 4, 2): each acting row's own terms plus an equal share of the shared ones."""
-        acting = self.actions >= 0
-        credit = np.where(acting[:, None, None], self.own, 0.0)
-        if acting.any():
-            credit[acting] += self.shared / acting.sum()
-        return credit
+        return credit(self.own, self.shared, self.actions >= 0)
 
     def total(self) -> np.ndarray:
         return self.own.sum(0) + self.shared
