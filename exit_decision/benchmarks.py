@@ -48,7 +48,8 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
 
     from exit_decision.graph import TrafficGraph
     from exit_decision.learning.trainer import Trainer
-    from exit_decision.policy import q_values
+    from exit_decision.model.names import CONDITIONED
+    from exit_decision.model.policy import q_values
 
     training = config.training.model_copy(update={
         'warmup_decisions': 0,
@@ -57,7 +58,7 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     config = config.model_copy(update={'training': training})
     lines = [f'learning benchmark, the mode-conditioned MDGQN ({episodes} episode(s) each, torch threads: 1)']
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(config, 'mdgqn', 'conditioned', seed, Path(tmp))
+        trainer = Trainer(config, 'mdgqn', CONDITIONED, seed, Path(tmp))
         for transition in trainer.collect_episode(seed, demonstrate=True, epsilon=0.0):
             trainer.demos.add(transition)
         timings = {}

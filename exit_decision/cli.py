@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from exit_decision.config import ConfigError, default_config_dir, load_project
 from exit_decision.errors import PolicyError, UsageError
+from exit_decision.model.names import DEFAULT_ALGORITHM, policy_path
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -61,7 +62,7 @@ def _known(option: str, value, check) -> None:
 
 def _known_algorithm(algorithm: str, config) -> None:
     """--algorithm: a learned method of the config, or <method>_conditioned (OptionError)."""
-    from exit_decision.policy_names import CONDITIONED_SUFFIX
+    from exit_decision.model.names import CONDITIONED_SUFFIX
     _known('--algorithm', algorithm.removesuffix(CONDITIONED_SUFFIX), config.training.method)
 
 
@@ -125,7 +126,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Train a learned method (one mode or the conditioned network); writes policy.pt, logs and config."""
-    from exit_decision.learning.trainer import CONDITIONED, Trainer
+    from exit_decision.learning.trainer import Trainer
+    from exit_decision.model.names import CONDITIONED
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     _known('--algorithm', args.algorithm, config.training.method)
@@ -255,7 +257,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.metrics import markdown_table, summarize
     from exit_decision.ros.launcher import StackError, free_bag_path, run_stack
 
-    from exit_decision.ros.decision_node import ALGORITHMS
+    from exit_decision.model.names import SHIPPED_ALGORITHMS
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     _check_thread_priority(args.thread_priority)
@@ -270,7 +272,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
             raise OptionError(f'argument --switch-at: {args.switch_at}: expected a step below the scenario\'s '
                               f'max_steps ({config.scenario.max_steps}), or --switch-to "" for no switch')
     # another method than the shipped ones: the node loads its policies for the modes of this run only
-    modes = [] if args.algorithm in ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
+    modes = [] if args.algorithm in SHIPPED_ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
     try:
@@ -308,7 +310,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """Re-run the decision policy on a bag's recorded graphs; compare with its commands."""
     from exit_decision.ros.bags import BagError
-    from exit_decision.ros.decision_node import default_policy_dir
+    from exit_decision.model.names import default_policy_dir
     from exit_decision.ros.replay import replay_decisions
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
@@ -567,9 +569,9 @@ def build_parser() -> argparse.ArgumentParser:
                             'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=STEP, default=300,
                        help='step of the first episode to switch at (below the scenario\'s max_steps)')
-    stack.add_argument('--algorithm', default='mdgqn_conditioned',
+    stack.add_argument('--algorithm', default=DEFAULT_ALGORITHM,
                        help='a learned method of config/training.yaml, <method>_conditioned for one network for every '
-                            'mode; shipped policies: mdgqn_conditioned, gqn, mdgqn (others: --policy-dir with '
+                            f'mode; shipped policies: {DEFAULT_ALGORITHM}, gqn, mdgqn (others: --policy-dir with '
                             '<algorithm>_<mode>/policy.pt)')
     stack.add_argument('--episodes', type=number(int, 0), default=1,
                        help='episodes to run (default 1); 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
@@ -660,7 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
     _common(tradeoff)
-    tradeoff.add_argument('--policy', type=checkpoint, default=Path('policies/mdgqn_conditioned/policy.pt'))
+    tradeoff.add_argument('--policy', type=checkpoint, default=policy_path(Path('policies'), DEFAULT_ALGORITHM))
     tradeoff.add_argument('--episodes', type=COUNT, default=20, help='seeds per weight point')
     tradeoff.add_argument('--seed', type=SEED, default=40_000, help='first seed (not a test or training seed)')
     tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'))
@@ -675,7 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
     report = commands.add_parser('report', help='write docs/results.md from the generated results')
     report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'))
     report.add_argument('--config-dir', type=existing('dir'), default=None)
-    report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies/mdgqn_conditioned')],
+    report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies') / DEFAULT_ALGORITHM],
                         help='training run directories (validation history, wall time)')
     report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity'))
     report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
@@ -692,7 +694,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
     compare.add_argument('--method', type=comparison_method, action='append', default=[],
                          help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
-                              'policies/mdgqn_conditioned/policy.pt unless --train is given)')
+                              f'policies/{DEFAULT_ALGORITHM}/policy.pt unless --train is given)')
     compare.add_argument('--train', action='append', default=[],
                          help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
                               'scenario, with the seeds and budget of --training; finished runs are reused')

@@ -146,7 +146,7 @@ def environment(install) -> dict[str, str]:
 def test_the_package_config_and_policies_come_from_the_install(install, bare_python, environment):
     code = ('import sys, exit_decision, exit_decision_msgs\n'
             'from exit_decision.config import default_config_dir\n'
-            'from exit_decision.ros.decision_node import default_policy_dir\n'
+            'from exit_decision.model.names import default_policy_dir\n'
             'print(exit_decision.__file__, exit_decision_msgs.__file__, default_config_dir(), default_policy_dir())\n'
             'print(sys.prefix)')
     result = subprocess.run([str(bare_python), '-c', code], env=environment, capture_output=True, text=True,

@@ -3,11 +3,13 @@ import numpy as np
 import pytest
 import torch
 
+from exit_decision.actions import NO_ACTION
+from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
-from exit_decision.learning.networks import GraphQNetwork, NetworkShape, normalize_adjacency
-from exit_decision.learning.replay import NO_ACTION, DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
-from exit_decision.policy import PolicyError, load_policy, save_policy
+from exit_decision.learning.replay import DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
+from exit_decision.model.networks import GraphQNetwork, NetworkShape, normalize_adjacency
+from exit_decision.model.policy import PolicyController, load_policy, save_policy
 from exit_decision.reward import weights_of_input
 from exit_decision.traffic import TrafficSnapshot
 
@@ -268,7 +270,6 @@ def test_a_conditioned_network_answers_per_weight_vector():
 
 
 def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
-    from exit_decision.policy import PolicyController
     net = GraphQNetwork(NetworkShape(num_features=2, num_actions=A, num_weights=6))
     save_policy(tmp_path / 'c.pt', net, {'algorithm': 'mdgqn', 'mode': 'conditioned', 'action_grid': {
         'lane_changes': [-1, 0, 1], 'acceleration_min': -1.0, 'acceleration_max': 0.0, 'acceleration_step': 1.0}})

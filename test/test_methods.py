@@ -12,7 +12,7 @@ from exit_decision.encoders import GRID_CELLS, StateEncoder
 from exit_decision.graph import GraphBuilder
 from exit_decision.learning.replay import PrioritizedSampler
 from exit_decision.learning.trainer import Trainer
-from exit_decision.policy import PolicyController, load_policy
+from exit_decision.model.policy import PolicyController, load_policy
 from exit_decision.traffic import INTENTION_LEFT, TrafficSnapshot
 from test_training import TINY, rows
 

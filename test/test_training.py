@@ -11,7 +11,7 @@ from exit_decision.evaluation.report import evaluate_runs, read_summary
 from exit_decision.learning.trainer import Trainer
 from exit_decision.learning.validation import INFEASIBLE, selection_score
 from exit_decision.errors import PolicyError
-from exit_decision.policy import load_policy
+from exit_decision.model.policy import load_policy
 
 from ros_helpers import small_config_dir
 

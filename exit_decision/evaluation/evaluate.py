@@ -11,7 +11,7 @@ from tqdm import tqdm
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
-from exit_decision.policy import GraphPolicy, PolicyController
+from exit_decision.model.policy import GraphPolicy, PolicyController
 from exit_decision.reward import scalar, weight_input
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.traffic import TrafficSnapshot

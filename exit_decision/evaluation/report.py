@@ -15,7 +15,8 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
-from exit_decision.policy import CONDITIONED_SUFFIX, load_policy
+from exit_decision.model.names import DEFAULT_ALGORITHM, is_conditioned, method_of, run_name
+from exit_decision.model.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
@@ -169,7 +170,7 @@ def interval_text(row: dict, key: str, digits: int = 3) -> str:
     return f'{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]'
 
 
-def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditioned',
+def target_checks(comparison: Sequence[dict], conditioned: str = DEFAULT_ALGORITHM,
                   exit_target: float = 0.99, collision_target: float = 0.0067) -> list[str]:
     """The targets of the learning issue, checked on comparison.csv (every run against the
     neutral teacher under the same mode, paired over the test seeds)."""
@@ -191,7 +192,7 @@ def target_checks(comparison: Sequence[dict], conditioned: str = 'mdgqn_conditio
             lines.append(f'  - against the best sanity-sweep driver under {mode} on these seeds ({run}): '
                          f'return {float(r["reward"]):.3f} vs {float(x["reward"]):.3f} ({diff:+.3f}, means)')
         for (run, m), x in rows.items():
-            if m == mode and run == f'{conditioned.removesuffix(CONDITIONED_SUFFIX)}_{mode}':
+            if m == mode and run == run_name(method_of(conditioned), mode):
                 gap = float(r['reward']) - float(x['reward'])
                 lines.append(f'  - against the per-mode network {run}: return {float(r["reward"]):.3f} vs '
                              f'{float(x["reward"]):.3f} ({gap:+.3f}, {gap / abs(float(x["reward"])):+.1%} of its '
@@ -273,7 +274,7 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
               '## Speed orderings between modes (paired over the test seeds)', '',
               'A conditioned policy acts at each mode\'s weights; drivers and per-mode policies drive the same '
               'episodes whatever the mode scoring them, so only the conditioned runs are compared here.', '',
-              *[line for run in sorted({r['run'] for r in comparison if r['run'].endswith(CONDITIONED_SUFFIX)})
+              *[line for run in sorted({r['run'] for r in comparison if is_conditioned(r['run'])})
                 for line in speed_orderings(evaluation_dir, run, speed_pairs)], '',
               '## Episodes cut by the step cap', '', *step_cap_lines(evaluation_dir, max_steps), '',
               '## Training', '', *training_lines(run_dirs), '']

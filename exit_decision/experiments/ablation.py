@@ -13,7 +13,7 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.evaluation.evaluate import evaluate_policy
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
-from exit_decision.policy import load_policy
+from exit_decision.model.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 
 #: the ablation's short runs validate less often, on fewer episodes, than the shipped policies

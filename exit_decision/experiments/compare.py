@@ -30,11 +30,12 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, Validation
 from tqdm import tqdm
 
 from exit_decision.actions import ActionGrid
-from exit_decision.config import (ConfigError, ProjectConfig, TrainingConfig, deep_merge, default_config_dir,
-                                  load_project, load_yaml, parse)
+from exit_decision.config import (ConfigError, ProjectConfig, TrainingConfig, deep_merge, load_project, load_yaml,
+                                  parse)
 from exit_decision.errors import UsageError
 from exit_decision.evaluation.evaluate import EvaluatedRun, evaluate_policy
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, driver_runs, write_run
+from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
 from exit_decision.tables import read_rows
 
 CellName = Annotated[str, StringConstraints(pattern=r'^[A-Za-z0-9_.-]+$')]   # a directory name
@@ -89,7 +90,7 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
     """The cells of the sweep over the variants of ``configs``; a method is a reference driver
     or a policy.pt file (checked here against the graph and actions, which no variant changes);
     ``trained``: policies named by their training run (``<method>_s<seed>``)."""
-    from exit_decision.policy import load_policy
+    from exit_decision.model.policy import load_policy
 
     cells, names = [], set()
     for method, run_name in [*((m, None) for m in methods), *((str(path), name) for name, path in (trained or {}).items())]:
@@ -115,7 +116,7 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
 def run_cell(cell: Cell, config: ProjectConfig, seeds: Sequence[int]) -> list[EvaluatedRun]:
     """One cell in this process (a Ray worker that runs nothing else)."""
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.policy import load_policy
+    from exit_decision.model.policy import load_policy
 
     if cell.policy is None:
         return driver_runs(config, cell.method, cell.modes, seeds)
@@ -322,4 +323,4 @@ def run_trainings(runs: Sequence[TrainingRun], config: ProjectConfig, out_dir: P
 
 def default_methods() -> list[str]:
     """The reference drivers and the shipped mode-conditioned policy."""
-    return [*REFERENCE_DRIVERS, str(default_config_dir().parent / 'policies' / 'mdgqn_conditioned' / 'policy.pt')]
+    return [*REFERENCE_DRIVERS, str(policy_path(default_policy_dir(), DEFAULT_ALGORITHM))]

@@ -41,7 +41,7 @@ def weight_points(config: ProjectConfig) -> dict[str, np.ndarray]:
 def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out_dir: Path) -> Path:
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.evaluate import run_episodes
-    from exit_decision.policy import PolicyController, load_policy
+    from exit_decision.model.policy import PolicyController, load_policy
 
     policy = load_policy(policy_path)
     if not policy.conditioned:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from exit_decision.learning.networks import GraphQNetwork, NetworkShape
+from exit_decision.model.networks import GraphQNetwork, NetworkShape
 
 @dataclass(frozen=True)
 class UpdateSettings:

@@ -41,24 +41,25 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from exit_decision.actions import NO_ACTION
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.encoders import StateEncoder
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
-from exit_decision.learning.networks import NetworkShape
-from exit_decision.learning.replay import (NO_ACTION, DecisionRecord, EpisodeAccumulator, PrioritizedSampler,
-                                           ReplayBuffer, scored_rewards)
+from exit_decision.learning.replay import (DecisionRecord, EpisodeAccumulator, PrioritizedSampler, ReplayBuffer,
+                                           scored_rewards)
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint
-from exit_decision.policy import git_revision, greedy_decision, load_policy, q_values, save_policy
+from exit_decision.model.names import CONDITIONED
+from exit_decision.model.networks import NetworkShape
+from exit_decision.model.policy import git_revision, greedy_decision, load_policy, q_values, save_policy
 from exit_decision.reward import WEIGHT_INPUT_SIZE, weight_input, weights_of_input
 from exit_decision.tables import append_row
 
 DEMONSTRATION_SEED = 800_000
 VALIDATION_SEED = 900_000
 EPISODE_SEED_STRIDE = 1_000_000
-CONDITIONED = 'conditioned'
 
 
 @dataclass(frozen=True)
@@ -314,7 +315,7 @@ class Trainer:
             'feature_set': c.graph.feature_set,
             'num_nodes': c.graph.max_vehicles, 'num_features': self.shape.num_features,
             'decision_interval': c.env.decision_interval, 'action_grid': c.env.actions.model_dump(),
-            'multi_step': self.multi_step, 'git_revision': git_revision(),
+            'action_space': 'grid', 'multi_step': self.multi_step, 'git_revision': git_revision(),
             'episode': self.state.episode, 'updates': self.state.updates,
             'training': c.training.model_dump(),
         }

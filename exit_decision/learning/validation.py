@@ -51,7 +51,7 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
     the paired gain with its 95% interval. ``env``: the caller's (inline validation; a
     worker process makes its own)."""
     from exit_decision.evaluation.evaluate import evaluate_policy, scored_episodes
-    from exit_decision.policy import load_policy
+    from exit_decision.model.policy import load_policy
 
     env, teacher = _env_and_teacher(task, env)
     max_steps = task.config.scenario.max_steps

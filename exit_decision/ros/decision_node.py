@@ -48,7 +48,7 @@ from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS, TrafficGraph
-from exit_decision.policy_names import CONDITIONED_SUFFIX
+from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies, policy_path
 from exit_decision.reward import check_weight_input, weight_input
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
@@ -61,17 +61,10 @@ from exit_decision.input_checks import InputError, StateLimits, StepGate
 from exit_decision.traffic import TrafficSnapshot
 
 if TYPE_CHECKING:
-    from exit_decision.policy import PolicyController
+    from exit_decision.model.policy import PolicyController
 
-ALGORITHMS = ('gqn', 'mdgqn', 'mdgqn_conditioned')
 CUSTOM_MODE = 'custom'   # the mode reported for reward_weights that are no configured mode's
 PAIRING_WINDOW = 20   # steps of unpaired graphs / states kept while waiting for the other half
-
-
-def default_policy_dir() -> Path:
-    """The repository's policies/ when run from a checkout, else the installed share dir."""
-    from exit_decision.config import default_config_dir
-    return default_config_dir().parent / 'policies'
 
 
 class DecisionNode(Node):
@@ -98,9 +91,10 @@ class DecisionNode(Node):
             'the last of parameter algorithms',
             constraints='a learned method of config/training.yaml or <method>_conditioned, loaded at start '
                         '(parameter algorithms)'))
-        shipped = not start_algorithm or start_algorithm in ALGORITHMS
-        algorithms = list(p('algorithms', list(ALGORITHMS) if shipped else [start_algorithm], describe(
-            f'algorithms whose policies are loaded at start; default: the shipped ones ({", ".join(ALGORITHMS)}), '
+        shipped = not start_algorithm or start_algorithm in SHIPPED_ALGORITHMS
+        algorithms = list(p('algorithms', list(SHIPPED_ALGORITHMS) if shipped else [start_algorithm], describe(
+            f'algorithms whose policies are loaded at start; default: the shipped ones '
+            f'({", ".join(SHIPPED_ALGORITHMS)}), '
             'or only the start algorithm if it is another', read_only=True)))
         if not algorithms:
             raise PolicyError('parameter algorithms: give at least one algorithm')
@@ -116,8 +110,7 @@ class DecisionNode(Node):
             raise PolicyError('parameter modes: give at least one mode')
         #: the policies to load, (algorithm, mode), mode None for a conditioned one: what the
         #: parameters are checked against, also while they load
-        self.planned = [(algorithm, mode) for algorithm in algorithms
-                        for mode in ([None] if algorithm.endswith(CONDITIONED_SUFFIX) else modes)]
+        self.planned = planned_policies(algorithms, modes)
         for _, mode in self.planned:
             if mode is not None:
                 config.mode(mode)   # an unknown one stops the node now, not after loading
@@ -170,7 +163,7 @@ class DecisionNode(Node):
             import torch
 
             from exit_decision.agents.lane_planner import LanePlanner
-            from exit_decision.policy import load_policy
+            from exit_decision.model.policy import load_policy
             torch.set_num_threads(1)   # per thread: the warm-up as the decisions will run
             config = self.config
             n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
@@ -179,8 +172,7 @@ class DecisionNode(Node):
             policies = {}
             for algorithm, mode in self.planned:
                 conditioned = mode is None
-                policy = load_policy(self.policy_dir / (algorithm if conditioned else f'{algorithm}_{mode}')
-                                     / 'policy.pt')
+                policy = load_policy(policy_path(self.policy_dir, algorithm, mode))
                 policy.check_compatible(n, config.graph.feature_set, config.env.decision_interval, self.grid)
                 if policy.conditioned != conditioned:
                     raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
@@ -199,7 +191,7 @@ class DecisionNode(Node):
         torch to one thread, which holds for the thread that calls it, the one that decides."""
         if isinstance(self.loaded, Exception):
             raise self.loaded
-        from exit_decision.policy import PolicyController
+        from exit_decision.model.policy import PolicyController
         policies, planner = self.loaded
         self.controllers = {key: PolicyController(policy, self.shield, weights, planner)
                             for key, (policy, weights) in policies.items()}

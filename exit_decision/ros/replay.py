@@ -31,7 +31,8 @@ from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig, default_config_dir, deep_merge, load_project, load_yaml
 from exit_decision.errors import UsageError
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError, TrafficGraph
-from exit_decision.policy import CONDITIONED_SUFFIX, PolicyController, load_policy
+from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
+from exit_decision.model.policy import PolicyController, load_policy
 from exit_decision.reward import weight_input
 from exit_decision.ros.bags import BagError, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
@@ -119,8 +120,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
         if mode_name not in config.modes:
             report.custom_weights += 1   # decided at reward_weights off the modes: not in the bag
             continue
-        conditioned = name.endswith(CONDITIONED_SUFFIX)
-        path = policy_file or policy_dir / (name if conditioned else f'{name}_{mode_name}') / 'policy.pt'
+        path = policy_file or policy_path(policy_dir, name, mode_name)
         if path not in controllers:
             policy = load_policy(path)
             policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
@@ -150,7 +150,7 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
 #: the shipped config with these changes (keyed by config file, as --override): a short episode
 FIXTURE_OVERRIDE = {'scenario': {'max_steps': 400}}
 #: the stack run: the shipped conditioned policy, one episode, a mode switch half-way
-FIXTURE_RUN = {'mode': 'AGGP', 'switch_to': 'CONP', 'switch_at_step': 200, 'algorithm': 'mdgqn_conditioned',
+FIXTURE_RUN = {'mode': 'AGGP', 'switch_to': 'CONP', 'switch_at_step': 200, 'algorithm': DEFAULT_ALGORITHM,
                'episodes': 1, 'seed': 10_000}
 #: what replay needs (it builds the graphs again; the graph topic would add ~9 KB a step)
 FIXTURE_TOPICS = (STATES_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC)
@@ -160,7 +160,6 @@ def check_fixture(fixture: Path, policy_dir: Path | None = None,
                   overrides: Sequence[Path | Mapping] = ()) -> ReplayReport:
     """Replay ``fixture``/bag with the shipped config plus the override.yaml beside it (and
     ``overrides``), the shipped (or ``policy_dir``'s) policies and graphs built again from its states."""
-    from exit_decision.ros.decision_node import default_policy_dir
     config = load_project(None, overrides=[fixture / 'override.yaml', *overrides])
     return replay_decisions(fixture / 'bag', config, policy_dir or default_policy_dir(), rebuild_graph=True)
 
@@ -170,7 +169,6 @@ def record_fixture(fixture: Path, log_dir: Path) -> str:
     recording FIXTURE_TOPICS, check that the replay reproduces the new bag, and only then put
     it in place of ``fixture``'s; returns what was recorded. UsageError when the run or the
     check fails (the old fixture is kept)."""
-    from exit_decision.ros.decision_node import default_policy_dir
     from exit_decision.ros.launcher import run_stack
 
     fixture.parent.mkdir(parents=True, exist_ok=True)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from exit_decision.model.names import DEFAULT_ALGORITHM
 from exit_decision.ros import cpu_affinity, realtime
 
 BRIDGE = 'sumo_bridge'
@@ -44,8 +45,8 @@ ARGUMENTS: dict[str, Argument] = {
     # the start of `exit-decision stack` too: config/modes.yaml's aggressive punished mode (it switches to CONP)
     'mode': Argument('AGGP', "decision mode at start, a mode of config/modes.yaml; empty: the decision node's "
                              "default, the first mode of the matrix"),
-    'algorithm': Argument('mdgqn_conditioned', 'a learned method of config/training.yaml with policies in policy_dir '
-                                               '(shipped: mdgqn_conditioned, one network for every mode; gqn; mdgqn)'),
+    'algorithm': Argument(DEFAULT_ALGORITHM, 'a learned method of config/training.yaml with policies in policy_dir '
+                                             f'(shipped: {DEFAULT_ALGORITHM}, one network for every mode; gqn; mdgqn)'),
     'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
                           "of config/modes.yaml", list),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),

@@ -1,13 +1,13 @@
 """Policy checkpoints and greedy inference, used by evaluation and the decision node.
 
 A checkpoint is self-describing: the network's state_dict plus plain-data metadata (network
-shape, state encoder, action grid, decision interval, feature set, N, mode, algorithm (the
-method's name), seed, git revision, training summary), so it loads with
+shape, state encoder, action grid, action space, decision interval, feature set, N, mode,
+algorithm (the method's name), seed, git revision, training summary), so it loads with
 ``torch.load(weights_only=True)`` and rebuilds its own network and encoder (a checkpoint
-without one reads the graph as built). ``GraphPolicy.q_values`` encodes the graph and the
-vehicle states for its method and runs all rows in one forward pass;
-``PolicyController`` chooses, per CAV, the best action the shield allows (the lane planner,
-when configured, driving the CAVs that are off their route).
+without one reads the graph as built; one without an action space acts on the grid).
+``GraphPolicy.q_values`` encodes the graph and the vehicle states for its method and runs all
+rows in one forward pass; ``PolicyController`` chooses, per CAV, the best action the shield
+allows (the lane planner, when configured, driving the CAVs that are off their route).
 """
 from __future__ import annotations
 
@@ -26,11 +26,12 @@ from exit_decision.config import ActionGridConfig, ConfigError
 from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
-from exit_decision.learning.networks import GraphQNetwork, NetworkShape
-from exit_decision.policy_names import CONDITIONED_SUFFIX  # noqa: F401 (its users import it from here too)
+from exit_decision.model.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
+#: the action spaces a checkpoint's metadata may name (``action_space``; a checkpoint without it: 'grid')
+ACTION_SPACES = ('grid',)
 
 
 def git_revision() -> str:
@@ -64,6 +65,7 @@ class GraphPolicy:
         self.path = path
         self.network = network.eval()
         self.metadata = metadata
+        self.action_space = metadata.get('action_space', 'grid')
         self.grid = ActionGrid(ActionGridConfig(**metadata['action_grid']))
         self.encoder = StateEncoder(**metadata.get('encoder', {'name': 'graph', 'graph_features': network.shape.num_features,
                                                               'lane_count': 3, 'speed_limit': 1.0}))
@@ -101,6 +103,8 @@ class GraphPolicy:
 
 
 def load_policy(path: Path | str) -> GraphPolicy:
+    """The checkpoint at ``path``; PolicyError, naming the path, for one that is missing,
+    unreadable or not a policy."""
     path = Path(path)
     if not path.is_file():
         raise PolicyError(f'{path}: no such policy file')
@@ -110,6 +114,9 @@ def load_policy(path: Path | str) -> GraphPolicy:
         raise PolicyError(f'{path}: not a readable policy checkpoint ({type(error).__name__}: {error})') from None
     if not isinstance(data, dict) or data.get('format') != CHECKPOINT_FORMAT:
         raise PolicyError(f'{path}: not an {CHECKPOINT_FORMAT} checkpoint')
+    action_space = data.get('metadata', {}).get('action_space', 'grid')
+    if action_space not in ACTION_SPACES:
+        raise PolicyError(f'{path}: action space {action_space!r} is not known; known: {", ".join(ACTION_SPACES)}')
     try:
         network = GraphQNetwork(NetworkShape(**data['network']))
         network.load_state_dict(data['state_dict'])

@@ -1,0 +1,63 @@
+"""How policy runs are named and where their checkpoints are, free of torch: the decision node
+plans what it will load (and answers parameter requests) before it imports the policy module.
+
+A learned method's run is ``<method>_<mode>`` (one policy per mode of config/modes.yaml) or
+``<method>_conditioned`` (one mode-conditioned policy for every mode, and any weights); its
+checkpoint is ``<policy dir>/<run>/policy.pt``. An *algorithm*, as the decision node, replay
+and ``exit-decision stack`` take it, is ``<method>`` (its per-mode policies) or
+``<method>_conditioned``.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+#: the mode of a mode-conditioned training run (``exit-decision train --mode conditioned``)
+CONDITIONED = 'conditioned'
+#: run names and algorithms of mode-conditioned policies end so: policies/mdgqn_conditioned/policy.pt
+CONDITIONED_SUFFIX = f'_{CONDITIONED}'
+#: the shipped mode-conditioned MDGQN: the stack's algorithm, the policy of tradeoff, report and compare
+DEFAULT_ALGORITHM = 'mdgqn_conditioned'
+#: the algorithms whose policies are shipped in policies/
+SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', DEFAULT_ALGORITHM)
+#: a planned policy: (algorithm, mode), mode None for a conditioned algorithm's one policy
+Planned = tuple[str, str | None]
+
+
+def is_conditioned(algorithm: str) -> bool:
+    """One mode-conditioned policy for every mode (``<method>_conditioned``)."""
+    return algorithm.endswith(CONDITIONED_SUFFIX)
+
+
+def method_of(algorithm: str) -> str:
+    """The learned method of config/training.yaml an algorithm (or run name) is of."""
+    return algorithm.removesuffix(CONDITIONED_SUFFIX)
+
+
+def planned(algorithm: str, mode: str | None) -> Planned:
+    """The policy that drives ``algorithm`` at ``mode``: the conditioned one whatever the mode."""
+    return (algorithm, None) if is_conditioned(algorithm) else (algorithm, mode)
+
+
+def planned_policies(algorithms: Iterable[str], modes: Iterable[str]) -> list[Planned]:
+    """The policies to load for these algorithms and modes, in that order."""
+    modes = list(modes)
+    return [planned(algorithm, mode) for algorithm in algorithms
+            for mode in ([None] if is_conditioned(algorithm) else modes)]
+
+
+def run_name(algorithm: str, mode: str | None) -> str:
+    """The run (its directory's name) of the policy that drives ``algorithm`` at ``mode``."""
+    algorithm, mode = planned(algorithm, mode)
+    return algorithm if mode is None else f'{algorithm}_{mode}'
+
+
+def policy_path(policy_dir: Path, algorithm: str, mode: str | None = None) -> Path:
+    """``<policy_dir>/<algorithm>[_<mode>]/policy.pt``: the checkpoint that drives ``algorithm`` at ``mode``."""
+    return policy_dir / run_name(algorithm, mode) / 'policy.pt'
+
+
+def default_policy_dir() -> Path:
+    """The repository's policies/ when run from a checkout, else the installed share dir."""
+    from exit_decision.config import default_config_dir
+    return default_config_dir().parent / 'policies'
