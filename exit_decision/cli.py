@@ -12,7 +12,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.errors import PolicyError, UsageError
+from exit_decision.errors import PolicyError, StackError, UsageError
 from exit_decision.model.names import DEFAULT_ALGORITHM, policy_path
 
 
@@ -255,7 +255,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from datetime import datetime
 
     from exit_decision.evaluation.metrics import markdown_table, summarize
-    from exit_decision.ros.launcher import StackError, free_bag_path, run_stack
+    from exit_decision.ros.launcher import free_bag_path, run_stack
 
     from exit_decision.model.names import SHIPPED_ALGORITHMS
 
@@ -275,16 +275,12 @@ def cmd_stack(args: argparse.Namespace) -> int:
     modes = [] if args.algorithm in SHIPPED_ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
-    try:
-        run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
-                        bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
-                        switch_to=switch_to, switch_at_step=args.switch_at,
-                        config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
-                        visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
-                        cpu_split=not args.no_cpu_split, compression=args.compression)
-    except StackError as error:   # every node stopped already
-        print(f'exit-decision: stack: {error}', file=sys.stderr)
-        return 1
+    run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
+                    bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
+                    switch_to=switch_to, switch_at_step=args.switch_at,
+                    config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
+                    visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
+                    cpu_split=not args.no_cpu_split, compression=args.compression)
     if run.stopped_by:
         print(f'stopped by {run.stopped_by}: {len(run.episodes)} episode(s) finished; the nodes stopped')
     if run.mode_switch:
@@ -741,6 +737,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, PolicyError, UsageError) as error:
         print(f'exit-decision: {error}', file=sys.stderr)
         return 2
+    except StackError as error:   # stack, fixture record: every node it started is stopped already
+        print(f'exit-decision: {args.command}: {error}', file=sys.stderr)
+        return 1
 
 
 if __name__ == '__main__':

@@ -5,6 +5,11 @@ class PolicyError(RuntimeError):
     """A policy file that is missing, unreadable, or does not fit; the message names the path."""
 
 
+class StackError(RuntimeError):
+    """The ROS stack could not run (``ros/launcher.py``): a node exited early, the nodes did not
+    come up or the run did not finish in time; one line, with where the logs are."""
+
+
 class UsageError(ValueError):
     """A file or option given on the command line that cannot be used; the message names the
     value and what is allowed."""

@@ -34,6 +34,7 @@ from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, ST
 from exit_decision.ros.conversions import metrics_from_event
 from exit_decision.ros.cpu_affinity import pinned
 from exit_decision.ros.stack_nodes import BRIDGE, cores, plan
+from exit_decision.errors import StackError
 from exit_decision.input_checks import InputError
 from exit_decision.step_gaps import episode_and_step
 
@@ -63,11 +64,6 @@ def start_node(name: str, parameters: dict[str, object], log: Path) -> subproces
     output to ``log``."""
     return subprocess.Popen(executable(name) + ros_args(parameters), stdout=open(log, 'w'),
                             stderr=subprocess.STDOUT, start_new_session=True)
-
-
-class StackError(RuntimeError):
-    """The stack could not run: a node exited early, the nodes did not come up or the run did
-    not finish in time. One line: what happened, and where the logs are."""
 
 
 @dataclass
