@@ -153,6 +153,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.report import evaluate_runs
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    if not args.policy and not args.driver:
+        raise OptionError('nothing to evaluate: give --policy or --driver (each repeatable)')
     for mode in args.mode:
         _known('--mode', mode, config.mode)
     modes = args.mode or list(config.training.conditioning.validation_modes)

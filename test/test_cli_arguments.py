@@ -91,6 +91,12 @@ def test_a_bad_option_value_is_one_line_naming_it_and_exit_code_2(no_work, tmp_p
     assert not out
 
 
+def test_evaluate_without_a_policy_or_driver_says_so_instead_of_an_empty_table(no_work, capsys):
+    assert main(['evaluate']) == 2
+    assert capsys.readouterr().err == ('exit-decision evaluate: error: nothing to evaluate: give --policy or --driver '
+                                       '(each repeatable)\n')
+
+
 #: options any text suits (where to write)
 FREE = {'--out', '--csv', '--markdown', '--report', '--address'}
 #: the options every command with _common() has, checked through run's rows (the one definition)
