@@ -28,7 +28,7 @@ time on the road in the safety row (docs/design.md, "Reward", known defect).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,24 +101,6 @@ def credit(own: np.ndarray, shared: np.ndarray, acting: np.ndarray) -> np.ndarra
         shares[acting] += shared / acting.sum()
     return shares
 
-
-def check_weight_input(weights: Sequence[float]) -> str | None:
-    """Why six numbers are not a valid mode (None if they are): four non-negative decision
-    weights summing to 1, then non-negative incentive and punishment weights summing to 1."""
-    try:
-        values = np.asarray(weights, dtype=float)
-    except (TypeError, ValueError):
-        return f'expected {WEIGHT_INPUT_SIZE} numbers, got {weights!r}'
-    if values.shape != (WEIGHT_INPUT_SIZE,):
-        return f'expected {WEIGHT_INPUT_SIZE} numbers (result, efficiency, comfort, safety, incentive, ' \
-               f'punishment), got {values.size}'
-    if not np.isfinite(values).all() or (values < 0).any():
-        return 'every weight must be a finite number >= 0'
-    if abs(values[:4].sum() - 1.0) > 1e-6:
-        return f'the four decision weights must sum to 1, they sum to {values[:4].sum():.6g}'
-    if abs(values[4:].sum() - 1.0) > 1e-6:
-        return f'incentive + punishment must be 1, they sum to {values[4:].sum():.6g}'
-    return None
 
 
 # --- the matrix -----------------------------------------------------------------------------

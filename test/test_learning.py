@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from exit_decision.actions import NO_ACTION
+from exit_decision.config import load_project
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
@@ -38,7 +39,7 @@ def test_q_network_shapes_and_that_n_is_free():
 def _shapes() -> dict[str, dict]:
     """The network of every method of config/training.yaml, plain and mode-conditioned, and the
     corners the methods do not reach (no hidden layer at all; no encoder; dueling with a GCN)."""
-    from exit_decision.config import default_config_dir, load_project
+    from exit_decision.config import default_config_dir
     shapes = {}
     for name, method in load_project(default_config_dir()).training.methods.items():
         net = method.network
@@ -252,8 +253,8 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
     (tmp_path / 'bad.pt').write_bytes(b'not a checkpoint')
     with pytest.raises(PolicyError, match='bad.pt: not a readable policy checkpoint'):
         load_policy(tmp_path / 'bad.pt')
-    with pytest.raises(PolicyError, match='trained with num_nodes=3'):
-        policy.check_compatible(60, 'paper', 5, policy.grid)
+    with pytest.raises(PolicyError, match='trained with num_nodes=3, the configuration has 60'):
+        policy.check_compatible(load_project())
 
 
 def test_a_conditioned_network_answers_per_weight_vector():
@@ -281,7 +282,7 @@ def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
                    torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
     np.testing.assert_allclose(policy.q_values(g, TrafficSnapshot([]), w), expected, rtol=1e-6)
     with pytest.raises(PolicyError, match='needs the mode weights'):
-        PolicyController(policy, shield=None)
+        PolicyController(policy, shield=None).decide(g, TrafficSnapshot([]))
 
 
 def test_relabelled_rewards_score_each_transition_under_its_own_weights():

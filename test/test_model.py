@@ -1,18 +1,32 @@
-"""The model floor: importable without torch, policy names and paths, checkpoints' action space."""
+"""The model floor: importable without torch, policy names and paths, checkpoints' action space,
+modes both ways, and the policies of a configuration loaded, checked and deciding for the
+weights they are given."""
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
+from exit_decision.agents.shield import Shield
+from exit_decision.config import ConfigError
 from exit_decision.errors import PolicyError
+from exit_decision.graph import FEATURE_SETS, TrafficGraph
+from exit_decision.model.modes import CUSTOM_MODE, ModeWeights, check_weights
 from exit_decision.model.names import (DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS, default_policy_dir, is_conditioned,
                                        method_of, planned_policies, policy_path)
+from exit_decision.reward import weight_input
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import TrafficSnapshot
 
 
-def test_the_model_package_and_its_names_import_no_torch():
+def test_the_model_package_its_names_and_modes_import_no_torch():
     """The decision node plans its policies and answers parameters before torch is loaded."""
-    code = 'import sys, exit_decision.model, exit_decision.model.names; print("torch" in sys.modules)'
+    code = ('import sys, exit_decision.model, exit_decision.model.names, exit_decision.model.modes; '
+            'print("torch" in sys.modules)')
     result = subprocess.run([sys.executable, '-c', code], cwd=Path(__file__).resolve().parent.parent,
                             capture_output=True, text=True, check=True)
     assert result.stdout.strip() == 'False'
@@ -44,3 +58,83 @@ def test_checkpoints_without_an_action_space_act_on_the_grid_and_an_unknown_one_
     data['metadata']['action_space'] = 'grid'
     torch.save(data, tmp_path / 'policy.pt')
     assert load_policy(tmp_path / 'policy.pt').action_space == 'grid'
+
+
+@pytest.mark.parametrize('weights, reason', [
+    ([0.25, 0.35, 0.15, 0.25, 0.6, 0.4], None),
+    ([0.25, 0.35, 0.15, 0.25, 0.6], 'expected 6 numbers'),
+    ([0.5, 0.35, 0.15, 0.25, 0.6, 0.4], 'sum to 1, they sum to 1.25'),
+    ([0.25, 0.35, 0.15, 0.25, 0.7, 0.4], 'incentive \\+ punishment must be 1'),
+    ([1.2, -0.2, 0, 0, 0.5, 0.5], 'finite number >= 0'),
+])
+def test_weight_inputs_are_checked_with_a_reason(weights, reason):
+    result = check_weights(weights)
+    if reason is None:
+        assert result is None
+    else:
+        assert re.search(reason, result)
+
+
+def test_a_mode_name_and_its_weights_both_ways(project_config):
+    modes = ModeWeights(project_config)
+    for name, mode in project_config.modes.items():
+        weights = modes.weights(name)
+        np.testing.assert_array_equal(weights, weight_input(mode))
+        assert modes.name(weights) in project_config.modes
+        assert name in modes
+    aggressive = modes.weights('AGGI')
+    assert modes.name(aggressive.tolist()) == 'AGGI' and modes.name(aggressive + 1e-12) == 'AGGI'
+    assert modes.name([0.25, 0.25, 0.25, 0.25, 0.5, 0.5]) == CUSTOM_MODE and CUSTOM_MODE not in modes
+    with pytest.raises(ConfigError, match="unknown mode 'FAST'"):
+        modes.weights('FAST')
+
+
+@pytest.fixture(scope='module')
+def deciding(project_config):
+    """The shield, lane planner and an idle graph (no CAV) of the shipped config."""
+    config = project_config
+    shield = Shield.of(config, ActionGrid(config.env.actions), RoadGeometry.of(config.scenario.road))
+    n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
+    idle = TrafficGraph(np.zeros((n, f), np.float32), np.zeros((n, n), np.uint8), np.zeros(n, bool), ('',) * n)
+    return shield, LanePlanner.of(config, shield), idle
+
+
+def test_the_shipped_policies_load_by_algorithm_and_mode_and_decide_for_the_weights_given(project_config, deciding):
+    from exit_decision.model.policy import load_controllers
+
+    shield, planner, idle = deciding
+    modes = ModeWeights(project_config)
+    matrix = project_config.mode_matrix.modes
+    controllers = load_controllers(project_config, default_policy_dir(), planned_policies(SHIPPED_ALGORITHMS, matrix),
+                                   shield, planner)
+    assert len(controllers) == 2 * len(matrix) + 1
+    assert {c.policy.action_space for c in controllers.values()} == {'grid'}, 'checkpoints without one: the grid'
+    empty = TrafficSnapshot([])
+    conditioned = controllers[(DEFAULT_ALGORITHM, None)]
+    for mode in matrix:
+        conditioned.decide(idle, empty, modes.weights(mode))
+    with pytest.raises(PolicyError, match='needs the mode weights'):
+        conditioned.decide(idle, empty)
+    per_mode = controllers[('gqn', 'AGGI')]
+    per_mode.decide(idle, empty)                          # None: its own mode
+    per_mode.decide(idle, empty, modes.weights('AGGI'))   # its own mode's weights
+    with pytest.raises(PolicyError) as refused:
+        per_mode.decide(idle, empty, modes.weights('CONP'))
+    message = str(refused.value)
+    assert '\n' not in message and "a policy of mode 'AGGI' decides for that mode only" in message
+    with pytest.raises(PolicyError, match='decides for that mode only'):
+        per_mode.at([0.25, 0.25, 0.25, 0.25, 0.5, 0.5])   # refused when bound, not at the first decision
+
+
+def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding):
+    from exit_decision.model.policy import load_controller
+
+    shield, planner, _ = deciding
+    shipped = policy_path(default_policy_dir(), 'gqn', 'AGGI')
+    with pytest.raises(PolicyError, match="a policy of mode 'AGGI'; algorithm 'gqn' at mode 'CONP' needs one"):
+        load_controller(project_config, shipped, shield, planner, ('gqn', 'CONP'))
+    with pytest.raises(PolicyError, match='not a mode-conditioned policy'):
+        load_controller(project_config, shipped, shield, planner, ('gqn_conditioned', None))
+    conditioned = policy_path(default_policy_dir(), DEFAULT_ALGORITHM)
+    with pytest.raises(PolicyError, match="a mode-conditioned policy; algorithm 'mdgqn' needs one per mode"):
+        load_controller(project_config, conditioned, shield, planner, ('mdgqn', 'AGGI'))

@@ -4,9 +4,14 @@ A change that alters a decision fails here, naming the first one; when the chang
 record the fixture again with `exit-decision fixture record` (README, "Command line")."""
 from pathlib import Path
 
+import pytest
+
+from exit_decision.config import load_project
+from exit_decision.errors import PolicyError
+from exit_decision.model.names import default_policy_dir, policy_path
 from exit_decision.ros.bags import read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC
-from exit_decision.ros.replay import check_fixture
+from exit_decision.ros.replay import check_fixture, replay_decisions
 
 FIXTURE = Path(__file__).parent / 'fixtures' / 'replay_bag'
 RE_RECORD = 'if the change is meant, record the fixture again: exit-decision fixture record'
@@ -31,3 +36,12 @@ def test_a_changed_decision_fails_the_replay_naming_the_first_difference():
     assert not report.reproduced and report.differences
     first = report.differences[0]
     assert first.startswith('episode 0 step ') and ': recorded (' in first and ', replayed (' in first, first
+
+
+def test_a_per_mode_policy_refuses_the_other_modes_decisions_in_one_line():
+    """The fixture switches AGGP -> CONP: a per-mode policy of AGGP, given instead, decides the
+    AGGP part and refuses at the first CONP decision, instead of deciding it as AGGP."""
+    config = load_project(None, overrides=[FIXTURE / 'override.yaml'])
+    shipped = policy_path(default_policy_dir(), 'gqn', 'AGGP')
+    with pytest.raises(PolicyError, match=r"a policy of mode 'AGGP' decides for that mode only, not for weights \["):
+        replay_decisions(FIXTURE / 'bag', config, default_policy_dir(), policy_file=shipped, rebuild_graph=True)

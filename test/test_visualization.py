@@ -457,9 +457,9 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
     from exit_decision.agents.rule_based import RuleBasedDriver
     from exit_decision.config import load_project
     from exit_decision.env import ExitDecisionEnv
+    from exit_decision.model.modes import ModeWeights
     from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
-    from exit_decision.model.policy import PolicyController, load_policy
-    from exit_decision.reward import weight_input
+    from exit_decision.model.policy import load_controller
     from exit_decision.shield_overrides import shield_overrides
     from ros_helpers import small_config_dir
 
@@ -468,8 +468,8 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
     if driver == 'rule_based':
         controller = RuleBasedDriver.for_env(env)
     else:
-        controller = PolicyController(load_policy(policy_path(default_policy_dir(), DEFAULT_ALGORITHM)),
-                                      env.shield, weight_input(config.mode('AGGP')), env.planner)
+        controller = load_controller(config, policy_path(default_policy_dir(), DEFAULT_ALGORITHM), env.shield,
+                                     env.planner).at(ModeWeights(config).weights('AGGP'))
     found = counted = 0
     try:
         env.reset(seed=7)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -11,8 +12,9 @@ from tqdm import tqdm
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
-from exit_decision.model.policy import GraphPolicy, PolicyController
-from exit_decision.reward import scalar, weight_input
+from exit_decision.model.modes import ModeWeights
+from exit_decision.model.policy import load_controller
+from exit_decision.reward import scalar
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.traffic import TrafficSnapshot
 from exit_decision.visualization.episodes import EpisodeRecorder, ShowEpisodes
@@ -92,21 +94,21 @@ def scored_episodes(episodes: list[dict], weights) -> list[dict]:
             for e in episodes]
 
 
-def evaluate_policy(env: ExitDecisionEnv, policy: GraphPolicy, modes: Sequence[str], seeds: list[int],
+def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str], seeds: list[int],
                     show: ShowEpisodes | None = None, name: str | None = None) -> list[EvaluatedRun]:
-    """A policy on the seeds, scored under each mode: a conditioned one acts at each mode's
-    weights, a per-mode one acts once (for its own mode). ``name``: the run's (default
-    <algorithm>_<mode> of the checkpoint)."""
+    """The policy at ``path`` on the seeds, scored under each mode: a conditioned one acts at
+    each mode's weights, a per-mode one acts once (for its own mode). ``name``: the run's
+    (default <algorithm>_<mode> of the checkpoint)."""
     config = env.config
-    policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
-                            env.actions)
+    controller = load_controller(config, path, env.shield, env.planner)
+    policy, modes_weights = controller.policy, ModeWeights(config)
     name = name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:
             result = EvaluationResult()
-            weights = weight_input(config.mode(mode)) if policy.conditioned else None
-            played = run_episodes(env, PolicyController(policy, env.shield, weights, env.planner), seeds, result,
+            acting = controller.at(modes_weights.weights(mode) if policy.conditioned else None)
+            played = run_episodes(env, acting, seeds, result,
                                   desc=f'{name} at {mode}' if policy.conditioned else name,
                                   show=show and show.named(f'{name}_{mode}' if policy.conditioned else name,
                                                            mode if policy.conditioned else policy.metadata['mode']))

@@ -16,7 +16,6 @@ from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, ev
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.model.names import DEFAULT_ALGORITHM, is_conditioned, method_of, run_name
-from exit_decision.model.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
@@ -51,7 +50,7 @@ def evaluate_runs(config: ProjectConfig, policies: Sequence[Path], drivers: Sequ
     env = ExitDecisionEnv(config, mode=modes[0])
     try:
         for path in policies:
-            runs += evaluate_policy(env, load_policy(path), modes, seeds, show)
+            runs += evaluate_policy(env, path, modes, seeds, show)
     finally:
         env.close()
     summaries = [(run.label, write_run(out_dir, run, ActionGrid(config.env.actions))) for run in runs]

@@ -13,7 +13,6 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.evaluation.evaluate import evaluate_policy
 from exit_decision.evaluation.metrics import summarize
 from exit_decision.learning.trainer import Trainer
-from exit_decision.model.policy import load_policy
 from exit_decision.tables import read_rows, write_rows
 
 #: the ablation's short runs validate less often, on fewer episodes, than the shipped policies
@@ -52,7 +51,7 @@ def run_ablation(out_dir: Path, algorithm: str, mode: str, episodes: int, eval_e
         policy_path = Trainer(config, algorithm, train_mode or mode, seed, run_dir).run(episodes)
         env = ExitDecisionEnv(config, mode=mode)
         try:
-            (run,) = evaluate_policy(env, load_policy(policy_path), [mode],
+            (run,) = evaluate_policy(env, policy_path, [mode],
                                      list(range(test_seed, test_seed + eval_episodes)))
         finally:
             env.close()

@@ -98,9 +98,7 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
             name, policy, per_mode = method, None, [tuple(modes)]
         elif Path(method).suffix == '.pt':
             policy = load_policy(method)
-            config = next(iter(configs.values()))
-            policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
-                                    ActionGrid(config.env.actions))
+            policy.check_compatible(next(iter(configs.values())))
             name = run_name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
             per_mode = [(mode,) for mode in modes] if policy.conditioned else [tuple(modes)]
             policy = Path(method)
@@ -116,13 +114,12 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
 def run_cell(cell: Cell, config: ProjectConfig, seeds: Sequence[int]) -> list[EvaluatedRun]:
     """One cell in this process (a Ray worker that runs nothing else)."""
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.model.policy import load_policy
 
     if cell.policy is None:
         return driver_runs(config, cell.method, cell.modes, seeds)
     env = ExitDecisionEnv(config, mode=cell.modes[0])
     try:
-        return evaluate_policy(env, load_policy(cell.policy), cell.modes, seeds, name=cell.method)
+        return evaluate_policy(env, cell.policy, cell.modes, seeds, name=cell.method)
     finally:
         env.close()
 

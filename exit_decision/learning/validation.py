@@ -51,12 +51,11 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
     the paired gain with its 95% interval. ``env``: the caller's (inline validation; a
     worker process makes its own)."""
     from exit_decision.evaluation.evaluate import evaluate_policy, scored_episodes
-    from exit_decision.model.policy import load_policy
 
     env, teacher = _env_and_teacher(task, env)
     max_steps = task.config.scenario.max_steps
     out = {}
-    for run, mode in zip(evaluate_policy(env, load_policy(path), task.modes, task.seeds), task.modes):
+    for run, mode in zip(evaluate_policy(env, path, task.modes, task.seeds), task.modes):
         theirs = scored_episodes(teacher, env.reward_fn.weights(task.config.mode(mode)))
         own = np.array([e['reward'] for e in run.episodes])
         gain, low, high = paired_interval(own - np.array([e['reward'] for e in theirs]))

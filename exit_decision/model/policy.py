@@ -1,4 +1,4 @@
-"""Policy checkpoints and greedy inference, used by evaluation and the decision node.
+"""Policy checkpoints and greedy inference, used by evaluation, replay and the decision node.
 
 A checkpoint is self-describing: the network's state_dict plus plain-data metadata (network
 shape, state encoder, action grid, action space, decision interval, feature set, N, mode,
@@ -6,13 +6,17 @@ algorithm (the method's name), seed, git revision, training summary), so it load
 ``torch.load(weights_only=True)`` and rebuilds its own network and encoder (a checkpoint
 without one reads the graph as built; one without an action space acts on the grid).
 ``GraphPolicy.q_values`` encodes the graph and the vehicle states for its method and runs all
-rows in one forward pass; ``PolicyController`` chooses, per CAV, the best action the shield
-allows (the lane planner, when configured, driving the CAVs that are off their route).
+rows in one forward pass; ``PolicyController.decide(graph, snapshot, weights)`` chooses, per
+CAV, the best action the shield allows (the lane planner, when configured, driving the CAVs
+that are off their route) for the mode ``weights`` are (``modes``). ``load_controller`` and
+``load_controllers`` load and check the policies of a configuration, by file or by (algorithm,
+mode) (``names``), for every caller alike.
 """
 from __future__ import annotations
 
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +26,12 @@ import torch
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.shield import Decision, Shield
-from exit_decision.config import ActionGridConfig, ConfigError
+from exit_decision.config import ActionGridConfig, ConfigError, ProjectConfig
 from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
+from exit_decision.model.modes import ModeWeights, same_weights
+from exit_decision.model.names import Planned, is_conditioned, policy_path
 from exit_decision.model.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -74,14 +80,15 @@ class GraphPolicy:
     def label(self) -> str:
         return f'{self.metadata.get("algorithm", "?")}/{self.metadata.get("mode", "?")}'
 
-    def check_compatible(self, num_nodes: int, feature_set: str, decision_interval: int,
-                         grid: ActionGrid) -> None:
-        """Raise PolicyError when the policy was trained for other graphs or actions."""
-        expected = {'num_nodes': num_nodes, 'feature_set': feature_set, 'decision_interval': decision_interval}
+    def check_compatible(self, config: ProjectConfig) -> None:
+        """Raise PolicyError when the policy was trained for other graphs or actions than ``config``'s."""
+        expected = {'num_nodes': config.graph.max_vehicles, 'feature_set': config.graph.feature_set,
+                    'decision_interval': config.env.decision_interval}
         for key, value in expected.items():
             if self.metadata.get(key) != value:
                 raise PolicyError(f'{self.path}: trained with {key}={self.metadata.get(key)!r}, '
                                   f'the configuration has {value!r}')
+        grid = ActionGrid(config.env.actions)
         if grid.size != self.grid.size or not np.allclose(grid.accelerations, self.grid.accelerations):
             raise PolicyError(f'{self.path}: its action grid differs from the configured one')
 
@@ -91,6 +98,11 @@ class GraphPolicy:
         return self.network.conditioned
 
     @property
+    def mode(self) -> str | None:
+        """The mode a per-mode policy was trained for; None for a conditioned one."""
+        return None if self.conditioned else self.metadata.get('mode')
+
+    @property
     def measures(self) -> bool:
         """Trained with our measures (shield, lane planner, demonstrations); False: a method
         run as published, which drives with only the lanes that exist masked."""
@@ -98,8 +110,9 @@ class GraphPolicy:
 
     def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
                  weights: np.ndarray | None = None) -> np.ndarray:
-        """(N, A) Q values of the graph's rows, as this policy's method sees the traffic."""
-        return q_values(self.network, self.encoder.encode(graph, snapshot), weights if self.conditioned else None)
+        """(N, A) Q values of the graph's rows, as this policy's method sees the traffic;
+        ``weights``: the mode's, for a conditioned policy (``PolicyController`` checks them)."""
+        return q_values(self.network, self.encoder.encode(graph, snapshot), weights)
 
 
 def load_policy(path: Path | str) -> GraphPolicy:
@@ -146,22 +159,83 @@ def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapsh
 
 
 class PolicyController:
-    """Greedy decisions of a policy under the shield (what evaluation and the node run);
-    ``weights``: the mode a conditioned policy decides for (changeable between decisions).
-    A policy trained as published drives as it was trained: the bare shield, no planner."""
+    """Greedy decisions of a policy under the shield (what evaluation, replay and the node run).
+    A policy trained as published drives as it was trained: the bare shield, no planner.
+    ``modes``: the configured modes, which tell the weights of a per-mode policy's own mode."""
 
-    def __init__(self, policy: GraphPolicy, shield: Shield, weights: np.ndarray | None = None,
-                 planner: LanePlanner | None = None):
+    def __init__(self, policy: GraphPolicy, shield: Shield, planner: LanePlanner | None = None,
+                 modes: ModeWeights | None = None):
         torch.set_num_threads(1)   # one small forward per decision: threads only add contention
         self.policy = policy
         self.shield = shield if policy.measures else shield.bare()
         self.planner = planner if policy.measures else None
         self.name = policy.label
-        if policy.conditioned and weights is None:
-            raise PolicyError(f'{policy.path}: a mode-conditioned policy needs the mode weights to decide')
-        self.weights = weights
+        #: a per-mode policy's own mode as weights (None: conditioned, or a mode ``modes`` lacks)
+        self.own_weights = modes.weights(policy.mode) if modes is not None and policy.mode in modes else None
+
+    def network_weights(self, weights: np.ndarray | None) -> np.ndarray | None:
+        """What the network takes to decide for ``weights`` (None: the policy's own mode):
+        a conditioned policy the weights, a per-mode one nothing; PolicyError, in one line, for
+        a conditioned policy given none and a per-mode one given another mode's."""
+        if self.policy.conditioned:
+            if weights is None:
+                raise PolicyError(f'{self.policy.path}: a mode-conditioned policy needs the mode weights to decide')
+            return weights
+        if weights is not None and (self.own_weights is None or not same_weights(self.own_weights, weights)):
+            raise PolicyError(f'{self.policy.path}: a policy of mode {self.policy.mode!r} decides for that mode '
+                              f'only, not for weights {np.asarray(weights, dtype=float).tolist()}; a mode-conditioned '
+                              f'policy decides for any')
+        return None
+
+    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot, weights: np.ndarray | None = None) -> Decision:
+        """The decision for the CAVs of ``graph``, built from the vehicles of ``snapshot``, in the
+        mode of ``weights`` (six numbers, ``modes``; None: the policy's own mode)."""
+        q = self.policy.q_values(graph, snapshot, self.network_weights(weights))
+        return greedy_decision(self.shield, graph, snapshot, q, planner=self.planner)
+
+    def at(self, weights: np.ndarray | None) -> PolicyAt:
+        """This policy deciding for ``weights`` only, as a driver decides (refused now, not at
+        the first decision, if it cannot)."""
+        self.network_weights(weights)
+        return PolicyAt(self, weights)
+
+
+@dataclass(frozen=True, eq=False)
+class PolicyAt:
+    """A policy at fixed mode weights: ``decide(graph, snapshot)``, as a driver's (evaluation)."""
+    controller: PolicyController
+    weights: np.ndarray | None
+
+    @property
+    def name(self) -> str:
+        return self.controller.name
 
     def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
-        """The decision for the CAVs of ``graph``, built from the vehicles of ``snapshot``."""
-        return greedy_decision(self.shield, graph, snapshot, self.policy.q_values(graph, snapshot, self.weights),
-                               planner=self.planner)
+        return self.controller.decide(graph, snapshot, self.weights)
+
+
+def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, planner: LanePlanner | None = None,
+                    planned: Planned | None = None) -> PolicyController:
+    """The policy at ``path``, checked against ``config`` (graph, decision interval, action grid)
+    and, for a ``planned`` (algorithm, mode), against that: conditioned as the algorithm's name
+    says, or trained for that mode; ready to decide under ``shield`` (and ``planner``).
+    PolicyError, naming the path, for a policy that is missing, unreadable or does not fit."""
+    policy = load_policy(path)
+    policy.check_compatible(config)
+    if planned is not None:
+        algorithm, mode = planned
+        if policy.conditioned != is_conditioned(algorithm):
+            raise PolicyError(f'{policy.path}: a mode-conditioned policy; algorithm {algorithm!r} needs one per mode'
+                              if policy.conditioned else
+                              f'{policy.path}: not a mode-conditioned policy, as algorithm {algorithm!r} needs')
+        if mode is not None and policy.mode != mode:
+            raise PolicyError(f'{policy.path}: a policy of mode {policy.mode!r}; algorithm {algorithm!r} at mode '
+                              f'{mode!r} needs one of that mode')
+    return PolicyController(policy, shield, planner, ModeWeights(config))
+
+
+def load_controllers(config: ProjectConfig, policy_dir: Path, planned: Iterable[Planned], shield: Shield,
+                     planner: LanePlanner | None = None) -> dict[Planned, PolicyController]:
+    """The policies of ``planned`` (``names.planned_policies``) from ``policy_dir``
+    (``names.policy_path``), each loaded and checked by ``load_controller``."""
+    return {key: load_controller(config, policy_path(policy_dir, *key), shield, planner, key) for key in planned}

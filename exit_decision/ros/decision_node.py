@@ -12,8 +12,12 @@ are loaded, so a synchronous bridge, which waits for a commands publisher, start
 
 ``mode`` and ``reward_weights`` (six numbers: result, efficiency, comfort and safety weights
 summing to 1, incentive and punishment summing to 1) are kept consistent: setting a mode sets
-its weights, setting weights sets the mode whose weights they are, or ``custom``. A
-conditioned policy takes the new weights at the next decision, with no reload. On each decision step it pairs the graph with the
+its weights, setting weights sets the mode whose weights they are, or ``custom``
+(``model.modes``, converted when a parameter is set). Every decision is for the current
+weights: a conditioned policy takes new ones at the next decision, with no reload; a per-mode
+policy is the one of their mode. Choosing, loading and checking the policies is
+``model.policy.load_controllers``'s; this node declares the parameters and wires the callbacks.
+On each decision step it pairs the graph with the
 vehicle states of the same step (the shield needs gaps and lanes), runs the greedy policy
 under the same shield as training and evaluation, and publishes the commands stamped with
 mode, algorithm and policy file. ``mode`` and ``algorithm`` switch at runtime through the
@@ -48,8 +52,8 @@ from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
 from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS, TrafficGraph
-from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies, policy_path
-from exit_decision.reward import check_weight_input, weight_input
+from exit_decision.model.modes import CUSTOM_MODE, ModeWeights, check_weights
+from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned, planned_policies
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
                                       declare_cpu_affinity, declare_thread_priority, describe, run_node)
@@ -63,7 +67,6 @@ from exit_decision.traffic import TrafficSnapshot
 if TYPE_CHECKING:
     from exit_decision.model.policy import PolicyController
 
-CUSTOM_MODE = 'custom'   # the mode reported for reward_weights that are no configured mode's
 PAIRING_WINDOW = 20   # steps of unpaired graphs / states kept while waiting for the other half
 
 
@@ -111,24 +114,28 @@ class DecisionNode(Node):
         #: the policies to load, (algorithm, mode), mode None for a conditioned one: what the
         #: parameters are checked against, also while they load
         self.planned = planned_policies(algorithms, modes)
+        self.mode_weights = ModeWeights(config)
         for _, mode in self.planned:
             if mode is not None:
-                config.mode(mode)   # an unknown one stops the node now, not after loading
+                self.mode_weights.weights(mode)   # an unknown one stops the node now, not after loading
         self.controllers: dict[tuple[str, str | None], PolicyController] = {}   # filled once loaded
         self.mode = p('mode', modes[0], describe(
             'decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
         if not isinstance(self.mode, str) or self.mode not in config.modes and self.mode != CUSTOM_MODE:
             raise PolicyError(f'parameter mode: {self.mode!r} is not allowed; allowed: {" | ".join(config.modes)}')
-        start_weights = weight_input(config.mode(self.mode if self.mode in config.modes else modes[0]))
-        self.reward_weights = list(p('reward_weights', [float(x) for x in start_weights], describe(
+        start_weights = self.mode_weights.weights(self.mode if self.mode in config.modes else modes[0])
+        reward_weights = list(p('reward_weights', start_weights.tolist(), describe(
             'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
             '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode')))
-        reason = check_weight_input(self.reward_weights)
+        reason = check_weights(reward_weights)
         if reason:
-            raise PolicyError(f'reward_weights {self.reward_weights}: {reason}')
-        if self.mode_of(self.reward_weights) != self.mode:
+            raise PolicyError(f'reward_weights {reward_weights}: {reason}')
+        #: what every decision is for (parameter reward_weights)
+        self.weights = np.asarray(reward_weights, dtype=float)
+        named = self.mode_weights.name(self.weights)
+        if named != self.mode:
             # weights given at start win: the mode is named after them
-            self.mode = self.mode_of(self.reward_weights)
+            self.mode = named
             self.set_parameters([Parameter('mode', Parameter.Type.STRING, self.mode)])
         self.algorithm = start_algorithm
         problem = self.problem({})
@@ -160,41 +167,31 @@ class DecisionNode(Node):
         """(Thread) Load, check and warm up the planned policies; hand them (or the error) to
         ``start_deciding`` in the executor's thread."""
         try:
-            import torch
-
             from exit_decision.agents.lane_planner import LanePlanner
-            from exit_decision.model.policy import load_policy
-            torch.set_num_threads(1)   # per thread: the warm-up as the decisions will run
+            from exit_decision.model.policy import load_controllers
             config = self.config
+            # each controller sets torch to one thread, in this thread: the warm-up as the decisions will run
+            controllers = load_controllers(config, self.policy_dir, self.planned, self.shield,
+                                           LanePlanner.of(config, self.shield))
             n, f = config.graph.max_vehicles, len(FEATURE_SETS[config.graph.feature_set])
             idle = TrafficGraph(np.zeros((n, f), np.float32), np.zeros((n, n), np.uint8), np.zeros(n, bool),
                                 ('',) * n)
-            policies = {}
-            for algorithm, mode in self.planned:
-                conditioned = mode is None
-                policy = load_policy(policy_path(self.policy_dir, algorithm, mode))
-                policy.check_compatible(n, config.graph.feature_set, config.env.decision_interval, self.grid)
-                if policy.conditioned != conditioned:
-                    raise PolicyError(f'{policy.path}: {"not " if conditioned else ""}a mode-conditioned policy, '
-                                      f'as algorithm {algorithm!r} needs')
-                weights = weight_input(config.mode(self.modes[0])) if conditioned else None
-                policy.q_values(idle, TrafficSnapshot([]), weights)   # the first forward pass is slow: not on the first decision
-                policies[(algorithm, mode)] = (policy, weights)
-            self.loaded = (policies, LanePlanner.of(config, self.shield))
+            warm = self.mode_weights.weights(self.modes[0])
+            for controller in controllers.values():   # the first forward pass is slow: not on the first decision
+                controller.policy.q_values(idle, TrafficSnapshot([]), warm if controller.policy.conditioned else None)
+            self.loaded = controllers
         except Exception as error:  # noqa: BLE001 (handed to the executor's thread, which stops the node with it)
             self.loaded = error
         self.loaded_signal.trigger()
 
     def start_deciding(self) -> None:
         """(Executor) With the policies loaded, subscribe and offer the commands; a loading
-        error stops the node (``run_node`` says why). The controllers are made here: each sets
-        torch to one thread, which holds for the thread that calls it, the one that decides."""
+        error stops the node (``run_node`` says why)."""
         if isinstance(self.loaded, Exception):
             raise self.loaded
-        from exit_decision.model.policy import PolicyController
-        policies, planner = self.loaded
-        self.controllers = {key: PolicyController(policy, self.shield, weights, planner)
-                            for key, (policy, weights) in policies.items()}
+        import torch
+        torch.set_num_threads(1)   # per thread: this one decides (the controllers set the loading thread's)
+        self.controllers = self.loaded
         self.destroy_guard_condition(self.loaded_signal)
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
@@ -211,45 +208,39 @@ class DecisionNode(Node):
 
     # --- parameters -------------------------------------------------------------------------
 
-    def mode_of(self, weights) -> str:
-        """The configured mode with these weights, or ``custom``."""
-        for name, mode in self.config.modes.items():
-            if np.allclose(weight_input(mode), weights, atol=1e-9):
-                return name
-        return CUSTOM_MODE
-
     def complete_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
         """Keep mode and reward_weights consistent: setting one sets the other too (values of
         the wrong type are left for the validation to refuse)."""
         names = {p.name for p in parameters}
         if 'mode' in names and 'reward_weights' not in names:
             mode = next(p.value for p in parameters if p.name == 'mode')
-            if isinstance(mode, str) and mode in self.config.modes:
+            if isinstance(mode, str) and mode in self.mode_weights:
                 parameters.append(Parameter('reward_weights', Parameter.Type.DOUBLE_ARRAY,
-                                            [float(x) for x in weight_input(self.config.mode(mode))]))
+                                            self.mode_weights.weights(mode).tolist()))
         elif 'reward_weights' in names and 'mode' not in names:
             weights = next(p.value for p in parameters if p.name == 'reward_weights')
-            if check_weight_input(weights) is None:
-                parameters.append(Parameter('mode', Parameter.Type.STRING, self.mode_of(weights)))
+            if check_weights(weights) is None:
+                parameters.append(Parameter('mode', Parameter.Type.STRING, self.mode_weights.name(weights)))
         return parameters
 
     def problem(self, changes: dict) -> str | None:
         """Why the parameters with these changes cannot drive (None if they can)."""
-        chosen = {'mode': self.mode, 'algorithm': self.algorithm, 'reward_weights': self.reward_weights, **changes}
+        chosen = {'mode': self.mode, 'algorithm': self.algorithm, 'reward_weights': self.weights, **changes}
         algorithm, mode = chosen['algorithm'], chosen['mode']
         algorithms = sorted({a for a, _ in self.planned})
         if not isinstance(mode, str) or not isinstance(algorithm, str):
             return f'mode and algorithm are strings, got mode {mode!r}, algorithm {algorithm!r}'
-        reason = check_weight_input(chosen['reward_weights'])
+        reason = check_weights(chosen['reward_weights'])
         if reason:
             return f'reward_weights {chosen["reward_weights"]!r}: {reason}'
         if algorithm not in algorithms:
             return f'unknown algorithm {algorithm!r}: no policy loaded for it; loaded algorithms: {", ".join(algorithms)}'
         if mode == CUSTOM_MODE and 'reward_weights' not in changes and 'mode' in changes:
             return f'mode {CUSTOM_MODE!r} is set by setting reward_weights to a point that is no configured mode'
-        if mode != self.mode_of(chosen['reward_weights']) and (mode in self.config.modes or mode == CUSTOM_MODE):
-            return (f'mode {mode!r} and reward_weights {list(chosen["reward_weights"])} disagree: set one of them '
-                    f'(the other follows)')
+        named = self.mode_weights.name(chosen['reward_weights'])
+        if mode != named and (mode in self.config.modes or mode == CUSTOM_MODE):
+            return (f'mode {mode!r} and reward_weights {np.asarray(chosen["reward_weights"], float).tolist()} '
+                    f'disagree: set one of them (the other follows)')
         if (algorithm, None) in self.planned:
             if mode != CUSTOM_MODE and mode not in self.config.modes:
                 return f'unknown mode {mode!r}; known modes: {", ".join(self.config.modes)}'
@@ -272,17 +263,9 @@ class DecisionNode(Node):
             if parameter.name in ('mode', 'algorithm'):
                 setattr(self, parameter.name, parameter.value)
             elif parameter.name == 'reward_weights':
-                self.reward_weights = list(parameter.value)
+                self.weights = np.asarray(parameter.value, dtype=float)
         if any(p.name in ('mode', 'algorithm', 'reward_weights') for p in parameters):
-            self.get_logger().info(f'active policy now {self.algorithm}/{self.mode} {self.reward_weights}')
-
-    def controller(self) -> PolicyController:
-        """The active policy; a conditioned one set to the current reward_weights."""
-        conditioned = self.controllers.get((self.algorithm, None))
-        if conditioned is not None:
-            conditioned.weights = np.asarray(self.reward_weights, dtype=float)
-            return conditioned
-        return self.controllers[(self.algorithm, self.mode)]
+            self.get_logger().info(f'active policy now {self.algorithm}/{self.mode} {self.weights.tolist()}')
 
     # --- messages ---------------------------------------------------------------------------
 
@@ -342,9 +325,9 @@ class DecisionNode(Node):
         if key <= self.last_decided:
             return
         self.last_decided = key
+        controller = self.controllers[planned(self.algorithm, self.mode)]
         try:
-            controller = self.controller()
-            decision = controller.decide(graph, snapshot)
+            decision = controller.decide(graph, snapshot, self.weights)
         except KeyError as error:   # a CAV of the graph is not in the states
             self.diagnostics.reject('graphs', f'graph of step {key[1]}', f'vehicle {error} is not in the states')
             return

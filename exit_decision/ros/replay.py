@@ -1,8 +1,8 @@
 """Offline replay: re-run a decision policy on the graphs and states recorded in a bag.
 
 For every recorded command array, the policy (the recorded one, another mode, or a given
-checkpoint; a conditioned one at the recorded or given mode's weights) decides again on the
-graph and states of the same step, under the shield; the
+checkpoint) decides again, for the recorded or given mode (a per-mode checkpoint refuses
+another mode's), on the graph and states of the same step, under the shield; the
 report counts the CAV commands that match the recorded ones and lists where they differ.
 With ``rebuild_graph`` the graphs are not the recorded ones but those the current graph
 builder makes from the recorded states (as the graph_builder node does: each episode from its
@@ -31,9 +31,9 @@ from exit_decision.agents.shield import Shield
 from exit_decision.config import ProjectConfig, default_config_dir, deep_merge, load_project, load_yaml
 from exit_decision.errors import UsageError
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError, TrafficGraph
-from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
-from exit_decision.model.policy import PolicyController, load_policy
-from exit_decision.reward import weight_input
+from exit_decision.model.modes import ModeWeights
+from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, planned, policy_path
+from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.ros.bags import BagError, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.conversions import commands_from_msg, graph_from_msg, states_from_msg
@@ -109,7 +109,8 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
     grid = ActionGrid(config.env.actions)
     shield = Shield.of(config, grid, RoadGeometry.of(config.scenario.road))
     planner = LanePlanner.of(config, shield)
-    controllers: dict[Path, PolicyController] = {}
+    modes = ModeWeights(config)
+    controllers: dict[Path | tuple, PolicyController] = {}   # by policy file, or by planned (algorithm, mode)
     report = ReplayReport()
     for msg in recorded:
         key = (msg.episode, msg.step)
@@ -117,20 +118,15 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
             report.missing_inputs += 1
             continue
         name, mode_name = algorithm or msg.algorithm, mode or msg.mode
-        if mode_name not in config.modes:
+        if mode_name not in modes:
             report.custom_weights += 1   # decided at reward_weights off the modes: not in the bag
             continue
-        path = policy_file or policy_path(policy_dir, name, mode_name)
-        if path not in controllers:
-            policy = load_policy(path)
-            policy.check_compatible(config.graph.max_vehicles, config.graph.feature_set, config.env.decision_interval,
-                                    grid)
-            controllers[path] = PolicyController(policy, shield, np.zeros(6) if policy.conditioned else None, planner)
-        controller = controllers[path]
-        if controller.policy.conditioned:
-            controller.weights = weight_input(config.mode(mode_name))
+        which = policy_file or planned(name, mode_name)
+        if which not in controllers:
+            controllers[which] = (load_controller(config, policy_file, shield, planner) if policy_file else
+                                  load_controller(config, policy_path(policy_dir, *which), shield, planner, which))
         vehicles = states_from_msg(states[key], config.scenario.road.names.sections)
-        decision = controller.decide(graphs[key], TrafficSnapshot(vehicles))
+        decision = controllers[which].decide(graphs[key], TrafficSnapshot(vehicles), modes.weights(mode_name))
         report.decisions += 1
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1
