@@ -186,6 +186,10 @@ class MatrixRewardConfig(Strict):
     dynamic_weights: bool
     comfort_vehicles: Literal['all', 'cav']
     incentive_per: Literal['step', 'metre']
+    # the safe-gaps incentive: Table 4's regions as read (per step of safe time gaps), or per
+    # metre driven graded by the time headway kept (reward.py MatrixReward.headway_grade)
+    safety_incentive: Literal['hazard_diagram', 'headway'] = 'hazard_diagram'
+    headway_full: PositiveFloat = 3.0   # [s] the headway that earns the whole safe-gaps incentive
     v_min: SpeedBounds
     scales: SubRewardValues
 
@@ -282,6 +286,37 @@ class RuleBasedConfig(Strict):
     firm_braking: PositiveFloat
     urgent_braking: PositiveFloat
     urgency_distance: PositiveFloat
+    # the options' low level (env.yaml options.low_level) turns these on; the grid's teacher
+    # and lane planner keep them off (their policies were trained that way)
+    overspeed_time: PositiveFloat | None = None    # [s] None: IDM's free term above the desired speed
+    cav_follower_check: bool = False               # refuse a change that forces a CAV follower into hard braking
+
+
+class OptionsConfig(Strict):
+    """The options action space (issue 28; exit_decision/agents/options.py)."""
+    hold_time: PositiveFloat                     # [s] an option ends after this long at the latest
+    lane_intents: list[Literal['keep', 'left', 'right', 'route']]
+    low_level: dict[str, float | bool]           # rule_based keys over env.yaml's, for every style
+    styles: dict[str, dict[str, float]]          # name -> rule_based keys over env.yaml's and low_level
+
+    @model_validator(mode='after')
+    def _styles(self) -> OptionsConfig:
+        if not self.styles:
+            raise ValueError('styles: at least one style is needed')
+        if 'keep' not in self.lane_intents or len(set(self.lane_intents)) != len(self.lane_intents):
+            raise ValueError(f'lane_intents: each at most once, keep among them, got {self.lane_intents}')
+        known = set(RuleBasedConfig.model_fields)
+        for name, keys in [('low_level', self.low_level), *((f'styles.{n}', k) for n, k in self.styles.items())]:
+            unknown = sorted(set(keys) - known)
+            if unknown:
+                raise ValueError(f'{name}: unknown rule_based key {unknown[0]!r} '
+                                 f'(allowed: {", ".join(sorted(known))})')
+        return self
+
+    def style(self, base: RuleBasedConfig, name: str) -> RuleBasedConfig:
+        """The driver parameters of a style: ``base`` (env.yaml rule_based), the low level's
+        keys, then the style's."""
+        return RuleBasedConfig.model_validate({**base.model_dump(), **self.low_level, **self.styles[name]})
 
 
 class EnvConfig(Strict):
@@ -289,6 +324,7 @@ class EnvConfig(Strict):
     actions: ActionGridConfig
     shield: ShieldConfig
     rule_based: RuleBasedConfig
+    options: OptionsConfig
     lane_planner: bool
     reward_variant: str
     mode: str

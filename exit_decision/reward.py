@@ -35,7 +35,7 @@ import numpy as np
 
 from exit_decision.config import (BaselineRewardConfig, IntentionRewardConfig, MatrixRewardConfig, ModeConfig,
                                   RewardVariantConfig, TermsRewardConfig)
-from exit_decision.traffic import StepResult, TrafficSnapshot, VehicleState
+from exit_decision.traffic import Neighbours, StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
 RESULT, EFFICIENCY, COMFORT, SAFETY = range(4)
@@ -102,7 +102,6 @@ def credit(own: np.ndarray, shared: np.ndarray, acting: np.ndarray) -> np.ndarra
     return shares
 
 
-
 # --- the matrix -----------------------------------------------------------------------------
 
 class MatrixReward:
@@ -160,10 +159,34 @@ class MatrixReward:
             return min(self._exp((t_max - 5.0) / 2.5), E2), -self._exp(4.0 - t_min)  # I2 + P1
         return 0.0, -self._exp(4.0 - t_min) - self._exp(4.0 - t_max)          # P1 + P2
 
-    @staticmethod
-    def time_gaps(vehicle: VehicleState, snapshot: TrafficSnapshot) -> tuple[float, float]:
-        """t1 (follower, eq. 27) and t2 (leader, eq. 28); inf when the gap is not closing."""
+    def headway_grade(self, vehicle: VehicleState, around: Neighbours) -> float:
+        """0..1: the smaller of the CAV's time headway to its leader (bumper gap over its own
+        speed) and its follower's to it (gap over the follower's speed), over ``headway_full``;
+        no vehicle, or one standing, counts as the full headway."""
+        full = self.config.headway_full
+        headway = full
+        if around.leader is not None and vehicle.speed > 0:
+            headway = min(headway, around.leader_gap / vehicle.speed)
+        if around.follower is not None and around.follower.speed > 0:
+            headway = min(headway, around.follower_gap / around.follower.speed)
+        return max(headway, 0.0) / full
+
+    def safety(self, vehicle: VehicleState, snapshot: TrafficSnapshot) -> tuple[float, float]:
+        """The safe-gaps row of one CAV: Table 4's punishments on the two time gaps; its
+        incentive as Table 4 reads (``hazard_diagram``), or (``headway``) e^2 per metre driven
+        times the headway grade, so a standing CAV earns nothing and a closer, still-safe gap
+        earns less (a choice the mode's weights price)."""
         around = snapshot.neighbours_of(vehicle)
+        incentive, punishment = self.safety_one(*self.time_gaps(vehicle, snapshot, around))
+        if self.config.safety_incentive == 'headway':
+            incentive = E2 * self.headway_grade(vehicle, around) * vehicle.speed * self.step_length
+        return incentive, punishment
+
+    @staticmethod
+    def time_gaps(vehicle: VehicleState, snapshot: TrafficSnapshot,
+                  around: Neighbours | None = None) -> tuple[float, float]:
+        """t1 (follower, eq. 27) and t2 (leader, eq. 28); inf when the gap is not closing."""
+        around = snapshot.neighbours_of(vehicle) if around is None else around
         t1 = t2 = math.inf
         if around.follower is not None and around.follower.speed > vehicle.speed:
             t1 = (vehicle.position - around.follower.position) / (around.follower.speed - vehicle.speed)
@@ -204,7 +227,7 @@ class MatrixReward:
                 cell = of(vehicle.vehicle_id)
                 cell[EFFICIENCY] += self.efficiency_one(vehicle)
                 cell[COMFORT] += self.comfort_one(vehicle)
-                cell[SAFETY] += self.safety_one(*self.time_gaps(vehicle, snapshot))
+                cell[SAFETY] += self.safety(vehicle, snapshot)
             elif self.config.comfort_vehicles == 'all':
                 shared[COMFORT] += self.comfort_one(vehicle)
         shared[COMFORT, PUNISHMENT] += self.lane_change_punishment(inputs.recent_lane_changes)

@@ -67,6 +67,32 @@ def test_calibrated_incentives_count_per_metre_driven(calibrated, literal):
     assert calibrated.comfort_one(standing)[0] == 0.0, 'standing still earns no incentive'
 
 
+def test_headway_safety_row_pays_per_metre_graded_by_the_headway_kept(project_config, literal):
+    """Issue 28's safety row: a standing CAV earns no safety incentive, even alone on the road;
+    a closer (still safe) gap earns less than a longer one; Table 4's punishments stay."""
+    headway = MatrixReward(project_config.reward('headway'), STEP)
+    full = headway.config.headway_full
+    standing = make_vehicle('s', 'CAV', position=100.0, speed=0.0)
+    assert headway.safety(standing, TrafficSnapshot([standing]))[0] == 0.0
+    alone = make_vehicle('a', 'CAV', position=100.0, speed=20.0)
+    assert headway.safety(alone, TrafficSnapshot([alone]))[0] == pytest.approx(math.exp(2) * 20.0 * STEP)
+
+    def incentive_behind(gap):
+        cav = make_vehicle('cav', 'CAV', position=100.0, speed=20.0)
+        leader = make_vehicle('l', position=100.0 + 5.0 + gap, speed=20.0)   # not closing: no punishment
+        return headway.safety(cav, TrafficSnapshot([cav, leader]))
+
+    close, far = incentive_behind(0.5 * full * 20.0), incentive_behind(2 * full * 20.0)
+    assert close == pytest.approx((0.5 * math.exp(2) * 20.0 * STEP, 0.0))
+    assert far == pytest.approx((math.exp(2) * 20.0 * STEP, 0.0))
+    # a closing follower: the same punishment as the hazard diagram's
+    cav = make_vehicle('cav', 'CAV', position=100.0, speed=20.0)
+    follower = make_vehicle('f', position=85.0, speed=25.0)                    # 10 m at 5 m/s: 2 s
+    snapshot = TrafficSnapshot([cav, follower])
+    assert headway.safety(cav, snapshot)[1] == pytest.approx(literal.safety(cav, snapshot)[1])
+    assert headway.safety(cav, snapshot)[1] < 0
+
+
 def test_comfort_per_vehicle_and_the_shared_lane_change_term(literal):
     assert literal.comfort_one(make_vehicle('a', acceleration=1.9)) == pytest.approx((math.exp(3), 0.0))
     assert literal.comfort_one(make_vehicle('c', acceleration=-3.0)) == (0.0, 0.0)

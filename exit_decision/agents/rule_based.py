@@ -63,6 +63,11 @@ class RuleBasedDriver:
         """IDM acceleration; ``gap`` None means no leader."""
         p = self.parameters
         free = 1.0 - (speed / desired) ** 4 if desired > 0 else -1.0
+        if p.overspeed_time is not None and speed > desired:
+            # above the desired speed (the ramp's limit ahead, or on the ramp): IDM's free term
+            # lags the falling limit and then brakes hard at once; close the excess over
+            # ``overspeed_time`` instead, at most comfortably
+            free = -min((speed - desired) / p.overspeed_time, p.comfortable_braking) / p.max_acceleration
         if gap is None:
             return p.max_acceleration * free
         wanted = p.standstill_gap + speed * p.time_headway + speed * (speed - leader_speed) / (
@@ -98,11 +103,27 @@ class RuleBasedDriver:
         follower = around.follower
         if follower is None:
             return True
+        if p.cav_follower_check and follower.controlled \
+                and not self.follower_keeps_out_of_hard_braking(vehicle, follower, around.follower_gap):
+            return False
         return self.idm(follower.speed, follower.lane_speed_limit, around.follower_gap, vehicle.speed) >= limit
 
-    def preferred(self, vehicle: VehicleState, snapshot: TrafficSnapshot) -> tuple[int, float]:
-        """(lane change, acceleration) the rules want, before any mask."""
-        target = self.target_lane(vehicle)
+    def follower_keeps_out_of_hard_braking(self, vehicle: VehicleState, follower: VehicleState,
+                                           gap: float) -> bool:
+        """Would a CAV follower, with this CAV ``gap`` metres in front of it, still have an
+        acceleration above the hard-braking threshold that its shield's stop-capable mask
+        allows? (Its shield decides how hard it brakes; IDM's estimate below is capped at the
+        firm braking and so lets any cut-in pass near the deadline: measured, most of the CAVs'
+        hard brakings were such cut-ins in front of other CAVs.)"""
+        shield = self.shield
+        allowed = shield.stop_capable(shield.ego_motion(follower.speed), gap, vehicle.speed)
+        return bool((allowed & shield.not_hard_braking).any())
+
+    def preferred(self, vehicle: VehicleState, snapshot: TrafficSnapshot,
+                  target: int | None = None) -> tuple[int, float]:
+        """(lane change, acceleration) the rules want, before any mask, towards the ``target``
+        lane (default: the route's, ``target_lane``)."""
+        target = self.target_lane(vehicle) if target is None else target
         lane_change = int(np.sign(target - vehicle.lane_index)) if vehicle.on_highway else 0
         if lane_change and self.change_is_acceptable(vehicle, lane_change, snapshot):
             return lane_change, min(self.acceleration(vehicle, snapshot),
@@ -153,7 +174,8 @@ class RuleBasedDriver:
             return int(candidates[np.argmin(distance)])
         return int(np.flatnonzero(mask)[0])
 
-    def command(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot) -> CavCommand:
+    def command(self, vehicle: VehicleState, mask: np.ndarray, snapshot: TrafficSnapshot,
+                target: int | None = None) -> CavCommand:
         """The rules' command off the grid (the options' low level): the wanted lane change if
         the mask allows it, and the wanted acceleration clipped into the mask's allowed range for
         that lane. (A lane's allowed accelerations are an interval: every layer of the shield
@@ -161,7 +183,7 @@ class RuleBasedDriver:
         rounding down to the grid is worth most of the efficiency row the grid driver loses to
         SUMO's drivers (docs/design.md, "Rule-based driver")."""
         grid = self.grid
-        lane_change, wanted = self.preferred(vehicle, snapshot)
+        lane_change, wanted = self.preferred(vehicle, snapshot, target)
         if lane_change and not (mask & grid.rows(lane_change)).any():
             wanted = self.gap_search(vehicle, lane_change, snapshot, self.acceleration(vehicle, snapshot))
             lane_change = 0
@@ -171,19 +193,28 @@ class RuleBasedDriver:
         return CavCommand(lane_change, float(np.clip(wanted, allowed.min(), allowed.max())))
 
     def commands(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> dict[str, CavCommand]:
-        """Every CAV's ``command`` under the shield, front to back with gap reservation."""
-        chosen: dict[str, CavCommand] = {}
-
-        def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
-            command = chosen[vehicle.vehicle_id] = self.command(vehicle, mask, snapshot)
-            rows = np.flatnonzero(mask & self.grid.rows(command.lane_change))
-            return int(rows[np.argmin(np.abs(self.grid.acceleration_of[rows] - command.acceleration))])
-
-        self.shield.decide(snapshot, graph.cav_ids(), choose)
-        return chosen
+        """Every CAV's ``command`` under the shield."""
+        return shielded_commands(self.shield, snapshot, graph.cav_ids(),
+                                 lambda vehicle, mask: self.command(vehicle, mask, snapshot))
 
     def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
         cav_ids = graph.cav_ids()
         return self.shield.decide(
             snapshot, cav_ids, lambda vehicle, mask: self.choose(vehicle, mask, snapshot),
             preferred=lambda vehicle: self.grid.index(*self.preferred(vehicle, snapshot)))
+
+
+def shielded_commands(shield: Shield, snapshot: TrafficSnapshot, cav_ids, command_of) -> dict[str, CavCommand]:
+    """Off-grid commands of CAVs under the shield, front to back with gap reservation:
+    ``command_of(vehicle, mask)`` gives a command within the mask's range (``command``); the
+    shield reserves the gap of the grid action nearest to it."""
+    grid = shield.grid
+    chosen: dict[str, CavCommand] = {}
+
+    def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
+        command = chosen[vehicle.vehicle_id] = command_of(vehicle, mask)
+        rows = np.flatnonzero(mask & grid.rows(command.lane_change))
+        return int(rows[np.argmin(np.abs(grid.acceleration_of[rows] - command.acceleration))])
+
+    shield.decide(snapshot, cav_ids, choose)
+    return chosen

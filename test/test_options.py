@@ -1,0 +1,119 @@
+"""The options action space: masks from the road and the planner only, when options end, and
+the rule-based low level that executes them under the shield."""
+import numpy as np
+import pytest
+
+from exit_decision.actions import ActionGrid
+from exit_decision.agents.lane_planner import LanePlanner
+from exit_decision.agents.options import OptionExecutor, OptionSpace
+from exit_decision.agents.shield import Shield
+from exit_decision.config import load_project
+from exit_decision.scenario.geometry import RoadGeometry
+from exit_decision.traffic import TrafficSnapshot
+
+from conftest import make_vehicle
+
+
+def space_of(config):
+    geometry = RoadGeometry.of(config.scenario.road)
+    shield = Shield.of(config, ActionGrid(config.env.actions), geometry)
+    return OptionSpace(config, shield, LanePlanner.of(config, shield))
+
+
+@pytest.fixture(scope='module')
+def space(project_config):
+    return space_of(project_config)
+
+
+def intents(space, mask):
+    return {space.options[i].lane_intent for i in np.flatnonzero(mask)}
+
+
+def test_masks_follow_the_road_and_the_route(space):
+    middle = make_vehicle('m', 'CAV', lane=1, position=60.0)           # before Exit_0: lanes 1-2 are the route
+    assert intents(space, space.mask(middle)) == {'keep', 'left', 'route'}, 'right would be lane 0: the first exit'
+    top = make_vehicle('t', 'CAV', lane=2, position=60.0)
+    assert intents(space, space.mask(top)) == {'keep', 'right', 'route'}, 'no lane 3'
+    off_route = make_vehicle('o', 'CAV', lane=1, position=250.0, edge='Highway_1')   # lane 0 is the route
+    assert space.planned(off_route)
+    assert intents(space, space.mask(off_route)) == {'keep', 'route'}, 'the planner owns its lane'
+    # every style is offered with every allowed intent
+    assert space.mask(middle).sum() == 3 * len(space.drivers)
+
+
+def test_masks_are_the_same_under_every_mode(project_config):
+    vehicles = [make_vehicle(f'c{i}', 'CAV', lane=lane, position=position, edge=edge)
+                for i, (lane, position, edge) in enumerate([(0, 30.0, 'Highway_0'), (1, 60.0, 'Highway_0'),
+                                                            (2, 120.0, 'Highway_0'), (1, 250.0, 'Highway_1'),
+                                                            (0, 300.0, 'Highway_1'), (2, 450.0, 'Highway_2')])]
+    masks = {}
+    for mode in project_config.modes:
+        space = space_of(load_project(overrides=[{'env': {'mode': mode}}]))
+        masks[mode] = np.array([space.mask(v) for v in vehicles])
+    first = next(iter(masks.values()))
+    assert all((m == first).all() for m in masks.values())
+
+
+def test_an_option_ends_on_time_when_its_change_is_done_at_a_takeover_or_a_reset(space):
+    executor = OptionExecutor(space)
+    cav = make_vehicle('c', 'CAV', lane=1, position=60.0)
+    snapshot = TrafficSnapshot([cav])
+    left = space.index('left', 'neutral')
+    chosen = []
+
+    def chooser(vehicle, mask):
+        chosen.append(vehicle.vehicle_id)
+        return left if mask[left] else space.index('keep', 'neutral')
+
+    assert executor.choose(snapshot, ['c'], 0.0, chooser) == {'c': left}
+    executor.choose(snapshot, ['c'], 0.5, chooser)
+    assert len(chosen) == 1, 'held, not chosen again'
+    changed = make_vehicle('c', 'CAV', lane=2, position=70.0)
+    executor.choose(TrafficSnapshot([changed]), ['c'], 1.0, chooser)
+    assert len(chosen) == 2, 'its lane change is done'
+    executor.choose(TrafficSnapshot([changed]), ['c'], 1.0 + space.hold_time, lambda v, m: space.index('keep', 'calm'))
+    assert executor.held['c'].index == space.index('keep', 'calm'), 'its hold time is over'
+    off_route = make_vehicle('c', 'CAV', lane=1, position=250.0, edge='Highway_1')
+    executor.choose(TrafficSnapshot([off_route]), ['c'], 1.5 + space.hold_time, lambda v, m: space.index('keep', 'close'))
+    assert executor.held['c'].index == space.index('keep', 'close'), 'the planner took it over'
+    executor.reset()
+    assert executor.held == {}
+    with pytest.raises(ValueError, match='masked'):
+        executor.choose(TrafficSnapshot([off_route]), ['c'], 9.0, lambda v, m: left)
+
+
+def test_the_low_level_executes_the_intent_and_the_style(space):
+    executor = OptionExecutor(space)
+    cav = make_vehicle('c', 'CAV', lane=1, position=60.0, speed=20.0)
+    snapshot = TrafficSnapshot([cav])
+    executor.choose(snapshot, ['c'], 0.0, lambda v, m: space.index('left', 'neutral'))
+    assert executor.commands(snapshot, ['c'])['c'].lane_change == 1
+    executor.reset()
+    executor.choose(snapshot, ['c'], 0.0, lambda v, m: space.index('keep', 'neutral'))
+    assert executor.commands(snapshot, ['c'])['c'].lane_change == 0
+    top = make_vehicle('c', 'CAV', lane=2, position=60.0, speed=20.0)
+    executor.reset()
+    executor.choose(TrafficSnapshot([top]), ['c'], 0.0, lambda v, m: space.index('route', 'neutral'))
+    assert executor.commands(TrafficSnapshot([top]), ['c'])['c'].lane_change == -1, 'the route plan: lane 1'
+
+    leader = make_vehicle('l', 'HV1', lane=1, position=100.0, speed=20.0)   # 35 m at equal speed
+    snapshot = TrafficSnapshot([cav, leader])
+    accelerations = {}
+    for style in ('close', 'calm'):
+        executor.reset()
+        executor.choose(snapshot, ['c'], 0.0, lambda v, m: space.index('keep', style))
+        accelerations[style] = executor.commands(snapshot, ['c'])['c'].acceleration
+    assert accelerations['close'] > 0 > accelerations['calm'], 'a 0.8 s style closes in, a 2 s one drops back'
+
+
+def test_unknown_style_keys_are_refused_at_load(tmp_path):
+    import shutil
+    from exit_decision.config import ConfigError, default_config_dir, load_yaml
+    import yaml
+    config_dir = tmp_path / 'config'
+    shutil.copytree(default_config_dir(), config_dir)
+    env = load_yaml(config_dir / 'env.yaml')
+    env['options']['styles']['fast'] = {'headway': 0.5}
+    (config_dir / 'env.yaml').write_text(yaml.safe_dump(env))
+    with pytest.raises(ConfigError, match="styles.fast: unknown rule_based key 'headway'"):
+        load_project(config_dir)
