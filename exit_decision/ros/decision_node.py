@@ -156,7 +156,7 @@ class DecisionNode(Node):
         self.states_gate = StepGate(config.scenario.max_steps, max_gap=gap)
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.policy_dir, self.modes = policy_dir, modes
-        self.loaded: tuple | Exception | None = None   # what the loading thread hands over
+        self.loaded: dict | Exception | None = None   # what the loading thread hands over: the controllers
         self.when_loaded: list = []   # called once the policies are loaded (composed: the graph builder subscribes)
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
         threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
