@@ -224,6 +224,18 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_options_table(args: argparse.Namespace) -> int:
+    """Every constant option under every mode, beside the grid's teacher and SUMO's drivers."""
+    from exit_decision.experiments.constant_options import write_table
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    for variant in args.variant:
+        _known('--variant', variant, config.reward)
+    print(write_table(config, list(range(args.seed, args.seed + args.episodes)),
+                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation))
+    return 0
+
+
 def cmd_tradeoff(args: argparse.Namespace) -> int:
     """A conditioned policy at every weight point: speed against hard braking and safety."""
     from exit_decision.experiments.tradeoff import run_tradeoff
@@ -657,6 +669,18 @@ def build_parser() -> argparse.ArgumentParser:
     sanity.add_argument('--calibrate', action='store_true',
                         help='no simulation: search row-scale multipliers on --out\'s episodes.csv')
     sanity.set_defaults(func=cmd_reward_sanity)
+
+    options = commands.add_parser('options-table', help='every constant option under every mode (the best '
+                                                         'fixed driver per mode), with the references')
+    _common(options)
+    options.add_argument('--episodes', type=COUNT, default=50, help='paired seeds per run')
+    options.add_argument('--seed', type=SEED, default=900_000,
+                         help='first seed (default: the validation seeds; 10000: the test seeds)')
+    options.add_argument('--variant', action='append', default=[],
+                         help='reward variant to score under (repeatable; default: env.yaml\'s)')
+    options.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
+    options.add_argument('--out', type=Path, default=Path('docs/results/options'))
+    options.set_defaults(func=cmd_options_table)
 
     tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
     _common(tradeoff)

@@ -289,7 +289,8 @@ class RuleBasedConfig(Strict):
     # the options' low level (env.yaml options.low_level) turns these on; the grid's teacher
     # and lane planner keep them off (their policies were trained that way)
     overspeed_time: PositiveFloat | None = None    # [s] None: IDM's free term above the desired speed
-    cav_follower_check: bool = False               # refuse a change that forces a CAV follower into hard braking
+    # CAVs know each other: no lane change that forces a CAV follower into hard braking
+    connected_cavs: bool = False
 
 
 class OptionsConfig(Strict):

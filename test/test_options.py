@@ -117,3 +117,44 @@ def test_unknown_style_keys_are_refused_at_load(tmp_path):
     (config_dir / 'env.yaml').write_text(yaml.safe_dump(env))
     with pytest.raises(ConfigError, match="styles.fast: unknown rule_based key 'headway'"):
         load_project(config_dir)
+
+
+def test_a_constant_option_drives_a_whole_episode_to_the_target_exit(project_config):
+    """The env, the executor and the low level together: the neutral style on the route's lane
+    plan, one real episode; the commands are off the grid."""
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import run_option_episode
+
+    env = ExitDecisionEnv(project_config)
+    try:
+        space = OptionSpace(project_config, env.shield, env.planner)
+        executor = OptionExecutor(space)
+        accelerations = []
+        commands = executor.commands
+
+        def recorded(snapshot, cav_ids):
+            result = commands(snapshot, cav_ids)
+            accelerations.extend(c.acceleration for c in result.values())
+            return result
+
+        executor.commands = recorded
+        metrics = run_option_episode(env, executor, lambda vehicle, mask: space.index('route', 'neutral'), 10)
+    finally:
+        env.close()
+    assert metrics['p_CAV'] == 1.0 and metrics['p_collision_CAV'] == 0.0
+    off_grid = [a for a in accelerations if abs(a * 2 - round(a * 2)) > 1e-6]
+    assert len(off_grid) > len(accelerations) / 2
+
+
+def test_the_best_fixed_driver_is_the_best_constant_option_per_mode():
+    from exit_decision.experiments.constant_options import table_markdown
+
+    def row(run, seed, aggi, coni):
+        return {'run': run, 'seed': seed, 'variant': 'v', 'return_AGGI': aggi, 'return_CONI': coni,
+                **dict.fromkeys(('v_AVs', 'headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
+    rows = [row(run, seed, aggi + seed, coni + seed) for seed in (1, 2, 3)
+            for run, aggi, coni in [('option_neutral', 10, 10), ('option_close', 11, 9), ('option_calm', 8, 12),
+                                    ('sumo', 20, 20)]]
+    text = table_markdown(rows, ['AGGI', 'CONI'], 'v')
+    assert "AGGI `option_close`" in text and "CONI `option_calm`" in text, 'references are not fixed options'
+    assert '+1.000 [+1.000, +1.000] ↑' in text

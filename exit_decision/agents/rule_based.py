@@ -103,7 +103,7 @@ class RuleBasedDriver:
         follower = around.follower
         if follower is None:
             return True
-        if p.cav_follower_check and follower.controlled \
+        if p.connected_cavs and follower.controlled \
                 and not self.follower_keeps_out_of_hard_braking(vehicle, follower, around.follower_gap):
             return False
         return self.idm(follower.speed, follower.lane_speed_limit, around.follower_gap, vehicle.speed) >= limit

@@ -1,7 +1,7 @@
 """Evaluation runs: a controller (or SUMO's own drivers) on fixed seeds, metrics per episode."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -9,6 +9,7 @@ from typing import Protocol
 import numpy as np
 from tqdm import tqdm
 
+from exit_decision.agents.options import OptionExecutor
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
@@ -16,7 +17,7 @@ from exit_decision.model.modes import ModeWeights
 from exit_decision.model.policy import load_controller
 from exit_decision.reward import scalar
 from exit_decision.shield_overrides import shield_overrides
-from exit_decision.traffic import TrafficSnapshot
+from exit_decision.traffic import TrafficSnapshot, VehicleState
 from exit_decision.visualization.episodes import EpisodeRecorder, ShowEpisodes
 
 
@@ -64,6 +65,32 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
     if recorder is not None:
         recorder.finish()
     return env.episode_log.metrics()
+
+
+def run_commands_episode(env: ExitDecisionEnv, commands_of: Callable[[ExitDecisionEnv], dict], seed: int,
+                         ) -> dict[str, float]:
+    """One episode whose CAVs get off-grid commands: ``commands_of(env)`` gives them at every
+    decision step (vehicle id -> ``CavCommand``; the options' low level)."""
+    env.reset(seed=seed)
+    done = False
+    while not done:
+        _, _, terminated, truncated, _ = env.step_commands(commands_of(env))
+        done = terminated or truncated
+    return env.episode_log.metrics()
+
+
+def run_option_episode(env: ExitDecisionEnv, executor: OptionExecutor,
+                       chooser: Callable[[VehicleState, np.ndarray], int], seed: int) -> dict[str, float]:
+    """One episode with options: at every decision step each CAV whose option ended gets a new
+    one from ``chooser(vehicle, mask)``, and the held options become the CAVs' commands."""
+    executor.reset()
+
+    def commands_of(env: ExitDecisionEnv) -> dict:
+        snapshot, cav_ids = env.sim.snapshot, env.graph.cav_ids()
+        executor.choose(snapshot, cav_ids, env.sim.state.time, chooser)
+        return executor.commands(snapshot, cav_ids)
+
+    return run_commands_episode(env, commands_of, seed)
 
 
 def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],

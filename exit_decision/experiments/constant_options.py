@@ -6,18 +6,20 @@ options' low level. Per mode, the best of them is "the best fixed driver" a lear
 must beat. Beside them, as references on the same seeds: the grid's neutral rule-based driver
 (the old teacher) and SUMO's own drivers. Every run's episodes are scored under every mode
 from their reward vectors (``exit_decision.reward``), so one episode per run and seed is
-enough. One simulation per worker process (libsumo).
+enough, and under every reward variant asked for. One simulation per worker process (libsumo).
 """
 from __future__ import annotations
 
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from exit_decision.config import ProjectConfig
 from exit_decision.evaluation.statistics import paired_interval
-from exit_decision.reward import scalar
+from exit_decision.experiments.reward_sanity import variant_rows
+from exit_decision.tables import write_rows
 
 #: the references beside the options' styles (run name -> how its CAVs are driven)
 REFERENCES = ('grid_rule_based', 'sumo')
@@ -28,12 +30,13 @@ def option_run_name(style: str) -> str:
     return f'option_{style}'
 
 
-def _episode(task: tuple) -> dict:
-    """One run on one seed, in a worker process; the row holds its return under every mode."""
-    config, run, seed = task
+def _episode(task: tuple) -> list[dict]:
+    """One run on one seed, in a worker process: a row per reward variant, with the return
+    under every mode."""
+    config, run, seed, variants = task
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import EvaluationResult, run_episode
+    from exit_decision.evaluation.evaluate import EvaluationResult, run_episode, run_option_episode
 
     env = _worker_env(config, 'sumo' if run == 'sumo' else 'policy')
     if run == 'sumo':
@@ -45,25 +48,7 @@ def _episode(task: tuple) -> dict:
         constant = space.index('route', run.removeprefix('option_'))
         executor = OptionExecutor(space)
         metrics = run_option_episode(env, executor, lambda vehicle, mask: constant, seed)
-    vector = env.episode_log.reward_vector
-    row = {'run': run, 'seed': seed, **metrics}
-    row.update({f'return_{mode}': float(scalar(vector, env.reward_fn.weights(config.mode(mode))))
-                for mode in config.modes})
-    return row
-
-
-def run_option_episode(env, executor, chooser, seed: int) -> dict[str, float]:
-    """One episode with options: at every decision step each CAV whose option ended gets a new
-    one from ``chooser(vehicle, mask)``, and the held options become the CAVs' commands."""
-    env.reset(seed=seed)
-    executor.reset()
-    done = False
-    while not done:
-        snapshot, cav_ids = env.sim.snapshot, env.graph.cav_ids()
-        executor.choose(snapshot, cav_ids, env.sim.state.time, chooser)
-        _, _, terminated, truncated, _ = env.step_commands(executor.commands(snapshot, cav_ids))
-        done = terminated or truncated
-    return env.episode_log.metrics()
+    return variant_rows(config, env, variants, {'run': run, 'seed': seed}, metrics)
 
 
 _ENV = None
@@ -77,25 +62,27 @@ def _worker_env(config: ProjectConfig, cav_driver: str):
     if _ENV is None or _ENV.sim.cav_driver != cav_driver:
         if _ENV is not None:
             _ENV.close()
-        _ENV = ExitDecisionEnv(config, cav_driver=cav_driver)
+        _ENV = ExitDecisionEnv(config, cav_driver=cav_driver, keep_step_inputs=True)
     return _ENV
 
 
-def run_table(config: ProjectConfig, seeds: list[int], jobs: int) -> list[dict]:
+def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int) -> list[dict]:
     runs = [option_run_name(style) for style in config.env.options.styles] + list(REFERENCES)
-    tasks = [(config, run, seed) for run in runs for seed in seeds]
+    tasks = [(config, run, seed, variants) for run in runs for seed in seeds]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        return list(tqdm(pool.map(_episode, tasks, chunksize=4), total=len(tasks), desc='constant options',
-                         unit='ep'))
+        return [row for rows in tqdm(pool.map(_episode, tasks, chunksize=4), total=len(tasks),
+                                     desc='constant options', unit='ep') for row in rows]
 
 
-def table_markdown(rows: list[dict], modes: list[str], neutral: str = option_run_name('neutral')) -> str:
-    """Per run: the driving columns, then per mode its return and the paired difference to the
-    neutral option; then, per mode, the best constant option (the best fixed driver)."""
+def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral')) -> str:
+    """Per run: the driving columns, then per mode its return under ``variant`` and the paired
+    difference to the neutral option; then, per mode, the best constant option (the best fixed
+    driver)."""
+    rows = [r for r in rows if r['variant'] == variant]
     runs = list(dict.fromkeys(r['run'] for r in rows))
     by = {(r['run'], int(r['seed'])): r for r in rows}
     seeds = sorted(s for run, s in by if run == neutral)
-    lines = ['| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
+    lines = [f'### Reward variant `{variant}` ({len(seeds)} seeds)', '', '| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
              + ' |', '|---' * (1 + len(COLUMNS) + len(modes)) + '|']
     best = {}
     for run in runs:
@@ -112,3 +99,21 @@ def table_markdown(rows: list[dict], modes: list[str], neutral: str = option_run
     lines += ['', 'The best fixed driver (the best constant option) per mode: '
               + ', '.join(f'{mode} `{run}` ({value:.3f})' for mode, (run, value) in best.items()) + '.']
     return '\n'.join(lines)
+
+
+def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,
+                command: str) -> str:
+    """Runs the table and writes ``constant_options.csv`` (per episode and reward variant) and
+    ``.md`` into ``out_dir``."""
+    rows = run_table(config, seeds, variants, jobs)
+    write_rows(out_dir / 'constant_options.csv', rows)
+    text = (f'# Constant options and the references, scored under every mode\n\nMade by `{command}` (seeds '
+            f'{seeds[0]}..{seeds[-1]}); per-episode rows in '
+            f'`constant_options.csv`. `option_<style>`: every CAV drives the route\'s lane plan in that style of '
+            f'config/env.yaml `options` with the options\' low level; `grid_rule_based`: the neutral '
+            f'rule-based driver on the 81-action grid; `sumo`: SUMO\'s own drivers. Columns: means over the '
+            f'episodes; per mode the mean return and, in brackets, the paired difference to `option_neutral` '
+            f'with its 95% interval (↑ / ↓: the interval excludes 0).\n\n'
+            + '\n\n'.join(table_markdown(rows, config.mode_matrix.modes, variant) for variant in variants) + '\n')
+    (out_dir / 'constant_options.md').write_text(text, encoding='utf-8')
+    return text

@@ -1,7 +1,8 @@
 """The reward sanity sweep: does each mode's reward prefer what the mode names?
 
 Rule-based drivers that differ from the neutral one in one setting (config/reward_sanity.yaml)
-drive the same seeds; every episode's reward vector (``exit_decision.reward``) is scored under
+drive the same seeds with the options' low level (env.yaml ``options.low_level``, off the
+action grid: the drivers a policy over options chooses among); every episode's reward vector (``exit_decision.reward``) is scored under
 every mode and every reward variant asked for. The table gives, per mode, each driver's
 return minus the neutral driver's on the same seeds where neither collided (the safe set;
 mean and paired 95% interval), with the driver's speed, exits, collisions and hard braking.
@@ -57,17 +58,24 @@ def _episode(task: tuple) -> list[dict]:
     """One driver on one seed (in a worker process: libsumo is one simulation per process)."""
     config, name, parameters, seed, variants = task
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import EvaluationResult, run_episode
+    from exit_decision.evaluation.evaluate import run_commands_episode
 
     env = _worker_env(config, variants[0])
-    metrics = run_episode(env, RuleBasedDriver.for_env(env, parameters), seed, EvaluationResult())
+    driver = RuleBasedDriver.for_env(env, parameters.model_copy(update=config.env.options.low_level))
+    metrics = run_commands_episode(env, lambda env: driver.commands(env.graph, env.sim.snapshot), seed)
+    return variant_rows(config, env, variants, {'driver': name, 'seed': seed}, metrics)
+
+
+def variant_rows(config: ProjectConfig, env, variants: list[str], key: dict, metrics: dict) -> list[dict]:
+    """One row per reward variant of the episode just run in ``env`` (made with
+    ``keep_step_inputs``): its steps scored again under the variant, the rows' sums and the
+    return under every mode."""
     rows = []
     for variant in variants:
-        # every variant's vector comes from the same episode: its steps are scored again
         reward = make_reward(config.reward(variant), config.scenario.step_length,
                              config.scenario.emergency_braking_threshold)
         vector = sum((reward.vector(inputs).total() for inputs in env.step_inputs), np.zeros((4, 2)))
-        row = {'driver': name, 'seed': seed, 'variant': variant, **metrics}
+        row = {**key, 'variant': variant, **metrics}
         row.update({f'{r}_{side}': vector[i, j] for i, r in enumerate(ROWS) for j, side in enumerate(('I', 'P'))})
         row.update({f'return_{mode}': float(scalar(vector, reward.weights(config.mode(mode)))) for mode in config.modes})
         rows.append(row)
