@@ -220,7 +220,7 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
             print(calibrate(read_rows(episodes), config, variant, next(iter(drivers)), expect))
         return 0
     print(write_sanity(config, sweep, list(range(args.seed, args.seed + args.episodes)), variants, args.jobs,
-                       args.out, args.invocation))
+                       args.out, args.invocation, args.low_level))
     return 0
 
 
@@ -666,6 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
     sanity.add_argument('--seed', type=SEED, default=20_000, help='first seed (not a test or training seed)')
     sanity.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
     sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'))
+    sanity.add_argument('--low-level', choices=['grid', 'options'], default='grid',
+                        help='the drivers on the action grid, or off it with the options\' low level '
+                             '(env.yaml options.low_level)')
     sanity.add_argument('--calibrate', action='store_true',
                         help='no simulation: search row-scale multipliers on --out\'s episodes.csv')
     sanity.set_defaults(func=cmd_reward_sanity)

@@ -54,7 +54,7 @@ BAD = [
     ['ablation', '--test-episodes', '0'], ['ablation', '--seed', '-1'], ['ablation', '--test-seed', '-1'],
     ['ablation', '--only', '99'], ['ablation', '--only', '-1'], ['ablation', '--config-dir', 'MISSING'],
     ['reward-sanity', '--sweep', 'MISSING'], ['reward-sanity', '--variant', 'NOPE'],
-    ['reward-sanity', '--episodes', '0'], ['reward-sanity', '--seed', '-1'], ['reward-sanity', '--jobs', '0'],
+    ['reward-sanity', '--low-level', 'nope'], ['reward-sanity', '--episodes', '0'], ['reward-sanity', '--seed', '-1'], ['reward-sanity', '--jobs', '0'],
     ['options-table', '--episodes', '0'], ['options-table', '--seed', '-1'], ['options-table', '--jobs', '0'],
     ['options-table', '--config-dir', 'MISSING'], ['options-table', '--variant', 'NOPE'],
     ['tradeoff', '--policy', NOT_CHECKPOINT], ['tradeoff', '--policy', 'MISSING'], ['tradeoff', '--episodes', '0'],

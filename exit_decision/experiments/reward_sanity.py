@@ -1,8 +1,9 @@
 """The reward sanity sweep: does each mode's reward prefer what the mode names?
 
 Rule-based drivers that differ from the neutral one in one setting (config/reward_sanity.yaml)
-drive the same seeds with the options' low level (env.yaml ``options.low_level``, off the
-action grid: the drivers a policy over options chooses among); every episode's reward vector (``exit_decision.reward``) is scored under
+drive the same seeds, on the action grid or (``low_level='options'``) with the options' low
+level (env.yaml ``options.low_level``, off the grid: the drivers a policy over options chooses
+among); every episode's reward vector (``exit_decision.reward``) is scored under
 every mode and every reward variant asked for. The table gives, per mode, each driver's
 return minus the neutral driver's on the same seeds where neither collided (the safe set;
 mean and paired 95% interval), with the driver's speed, exits, collisions and hard braking.
@@ -28,6 +29,10 @@ from exit_decision.config import ConfigError, ProjectConfig, RuleBasedConfig, lo
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.reward import ROWS, make_reward, scalar
 from exit_decision.tables import write_rows
+
+
+#: how the sweep's drivers drive: on the action grid, or off it with the options' low level
+LowLevel = Literal['grid', 'options']
 
 
 class SweepConfig(BaseModel):
@@ -56,13 +61,16 @@ def load_sweep(path: Path, config: ProjectConfig) -> tuple[dict[str, RuleBasedCo
 
 def _episode(task: tuple) -> list[dict]:
     """One driver on one seed (in a worker process: libsumo is one simulation per process)."""
-    config, name, parameters, seed, variants = task
+    config, name, parameters, seed, variants, low_level = task
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import run_commands_episode
+    from exit_decision.evaluation.evaluate import EvaluationResult, run_commands_episode, run_episode
 
     env = _worker_env(config, variants[0])
-    driver = RuleBasedDriver.for_env(env, parameters.model_copy(update=config.env.options.low_level))
-    metrics = run_commands_episode(env, lambda env: driver.commands(env.graph, env.sim.snapshot), seed)
+    if low_level == 'options':
+        driver = RuleBasedDriver.for_env(env, parameters.model_copy(update=config.env.options.low_level))
+        metrics = run_commands_episode(env, lambda env: driver.commands(env.graph, env.sim.snapshot), seed)
+    else:
+        metrics = run_episode(env, RuleBasedDriver.for_env(env, parameters), seed, EvaluationResult())
     return variant_rows(config, env, variants, {'driver': name, 'seed': seed}, metrics)
 
 
@@ -94,8 +102,9 @@ def _worker_env(config: ProjectConfig, variant: str):
 
 
 def run_sweep(config: ProjectConfig, drivers: dict[str, RuleBasedConfig], seeds: list[int],
-              variants: list[str], jobs: int) -> list[dict]:
-    tasks = [(config, name, parameters, seed, variants) for name, parameters in drivers.items() for seed in seeds]
+              variants: list[str], jobs: int, low_level: LowLevel = 'grid') -> list[dict]:
+    tasks = [(config, name, parameters, seed, variants, low_level)
+             for name, parameters in drivers.items() for seed in seeds]
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         for result in tqdm(pool.map(_episode, tasks, chunksize=4), total=len(tasks), desc='reward sanity',
@@ -176,11 +185,11 @@ def calibrate(rows: list[dict], config: ProjectConfig, variant: str, neutral: st
 
 
 def write_sanity(config: ProjectConfig, sweep_file: Path, seeds: list[int], variants: list[str], jobs: int,
-                 out_dir: Path, command: str) -> str:
+                 out_dir: Path, command: str, low_level: LowLevel = 'grid') -> str:
     drivers, _ = load_sweep(sweep_file, config)
     for variant in variants:
         config.reward(variant)
-    rows = run_sweep(config, drivers, seeds, variants, jobs)
+    rows = run_sweep(config, drivers, seeds, variants, jobs, low_level)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_rows(out_dir / 'episodes.csv', rows)
     modes = list(config.modes)
