@@ -592,7 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
     stack.add_argument('--compression', choices=STACK_ARGUMENTS['compression'].choices,
                        default=STACK_ARGUMENTS['compression'].default,
                        help='mcap chunk compression of the bag (default %(default)s; one episode of the shipped '
-                            'scenario, 80 s simulated: none 3.55 MB, zstd 0.49 MB, lz4 0.73 MB)')
+                            'scenario, 80 s simulated: none 3.55 MB, zstd 0.49 MB)')
     stack.add_argument('--policy-dir', type=existing('dir'), default=None, help='default: the shipped policies/')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')

@@ -90,7 +90,7 @@ def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_
     assert declared['bag_path'] == '' and 'bag_path' not in nodes['recorder']
     assert declared['compression'] == nodes['recorder']['compression'] == recorder.DEFAULT_COMPRESSION == 'zstd'
     assert sorted(ARGUMENTS['compression'].choices) == sorted(bags.COMPRESSIONS)
-    refusal = "argument compression: 'gzip' is not allowed; allowed: zstd | lz4 | none"
+    refusal = "argument compression: 'gzip' is not allowed; allowed: zstd | none"
     with pytest.raises(ValueError, match=re.escape(refusal)):
         plan({'compression': 'gzip'})
 

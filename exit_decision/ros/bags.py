@@ -9,9 +9,9 @@ SIGKILL leaves an mcap file with no summary and no metadata.yaml) raises ``BagEr
 line saying what is wrong and what to do. ``repair_bag`` makes an unfinished bag readable up
 to its last complete chunk and says what was lost.
 
-Chunks are written compressed (``open_writer``, ``COMPRESSIONS``) as mcap allows: zstd or lz4
-(rosbag2's own mcap plugin, Foxglove and rosbags read both), or not at all. Readers need no
-option: each chunk names its compression.
+Chunks are written zstd-compressed or not at all (``open_writer``, ``COMPRESSIONS``). Readers
+need no option: each chunk names its compression; bags with the format's other compression,
+lz4 (another recorder's), are read as well.
 """
 from __future__ import annotations
 
@@ -50,8 +50,10 @@ KNOWN_TOPICS = {**DEFAULT_TOPICS, DIAGNOSTICS_TOPIC: 'diagnostic_msgs/msg/Diagno
 BAG_ALLOWED = 'a rosbag2 (mcap) directory, as the recorder writes'
 #: errors rosbags and rclpy raise on a bag whose files are damaged (RuntimeError: CDR rclpy cannot read)
 READ_ERRORS = (ReaderError, OSError, ValueError, KeyError, EOFError, struct.error, RuntimeError)
-#: mcap chunk compressions a bag can be written with
-COMPRESSIONS = ('none', 'zstd', 'lz4')
+#: mcap chunk compressions a bag is written with: zstd, which rosbags' writer offers and rosbag2's
+#: mcap presets use (lz4, the format's other one, would take rosbags' internals and an extra
+#: dependency for a bag 1.5x zstd's: recorder.py), or none
+COMPRESSIONS = ('none', 'zstd')
 
 
 class BagError(ValueError):
@@ -87,18 +89,14 @@ def typestore() -> Typestore:
 
 def open_writer(path: Path, compression: str = 'none') -> Writer:
     """A new mcap bag at ``path``, open, its chunks compressed with ``compression`` (one of
-    COMPRESSIONS). rosbags 0.11.9 offers zstd chunks itself (its CompressionMode.STORAGE; the
-    metadata says no file or message compression, as rosbag2 does for chunk compression);
-    lz4, which its reader reads, is set on its mcap storage before the first chunk is closed."""
+    COMPRESSIONS): zstd is rosbags' CompressionMode.STORAGE (its metadata then names no file or
+    message compression, as rosbag2's does for chunk compression)."""
     if compression not in COMPRESSIONS:
         raise ValueError(f'compression {compression!r}; allowed: {" | ".join(COMPRESSIONS)}')
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
     if compression == 'zstd':
         writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     writer.open()
-    if compression == 'lz4':
-        from lz4.frame import compress   # rosbags' own dependency (its reader's lz4)
-        writer.storage.compression, writer.storage.compressor = 'lz4', compress
     return writer
 
 
@@ -196,8 +194,8 @@ def repair_bag(path: Path) -> RepairReport:
 
     The unfinished mcap file is kept beside the new one as ``<name>.mcap.unfinished``; the
     bag gets a new mcap file with its summary and a metadata.yaml, its chunks compressed as
-    the first chunk of the old one was. BagError if the bag is no unfinished bag (missing,
-    finished already, not an mcap file)."""
+    the first chunk of the old one was (zstd if that was lz4). BagError if the bag is no
+    unfinished bag (missing, finished already, not an mcap file)."""
     from rosbags.rosbag2.storage_mcap import decompress, get_qos   # rosbags' own chunk check and QoS reader
 
     if not path.is_dir():
@@ -259,7 +257,8 @@ def repair_bag(path: Path) -> RepairReport:
                     compression, offset = _string(body, 28)
                     (length,) = struct.unpack_from('<Q', body, offset)
                     if writer is None:
-                        writer = open_writer(staging / path.name, compression or 'none')
+                        kept_as = compression or 'none'
+                        writer = open_writer(staging / path.name, kept_as if kept_as in COMPRESSIONS else 'zstd')
                     for record in _records(decompress(body[offset + 8:offset + 8 + length], compression, size, crc)):
                         take(*record)
                 else:

@@ -12,11 +12,12 @@ Memory stays flat however long it records: messages go to the file a chunk (1 MB
 second) at a time; what stays in memory per chunk is its index entry (about 100 bytes).
 
 Parameter ``compression`` compresses each chunk (mcap's chunk compression; ``bags.open_writer``):
-zstd by default, lz4, or none. Measured on one episode of the shipped scenario (60 vehicles,
-800 steps = 80 s simulated, `exit-decision stack`, 2026-12-03): none 3.55 MB (about 2.7 MB per
-simulated minute), zstd 0.49 MB (-86 %), lz4 0.73 MB (-80 %, the same messages rewritten); with
-the chunks a real-time run closes every second (71 instead of 4) zstd 0.57 MB, lz4 0.79 MB.
-Replay, show and bag repair read each (test/test_bag_compression.py).
+zstd by default, or none. Measured on one episode of the shipped scenario (60 vehicles, 800
+steps = 80 s simulated, `exit-decision stack`, 2026-12-03): none 3.55 MB (about 2.7 MB per
+simulated minute), zstd 0.49 MB (-86 %); the same messages rewritten with the chunks a
+real-time run closes every second (71 instead of 4): zstd 0.57 MB. lz4, mcap's other chunk
+compression, made 0.73 MB (0.79 MB) and is not offered. Replay, show and bag repair read zstd
+and lz4 bags (test/test_bag_compression.py).
 
 Gaps in the recorded step sequences of states (every step), graphs and commands (every
 decision step) are counted per topic on /diagnostics (``gaps_<topic>``, ``missing_steps_<topic>``)
