@@ -289,8 +289,10 @@ class RuleBasedConfig(Strict):
     # the options' low level (env.yaml options.low_level) turns these on; the grid's teacher
     # and lane planner keep them off (their policies were trained that way)
     overspeed_time: PositiveFloat | None = None    # [s] None: IDM's free term above the desired speed
-    # CAVs know each other: no lane change that forces a CAV follower into hard braking
+    # CAVs know each other: no lane change that forces a CAV follower into hard braking, and a
+    # CAV makes room for one merging ahead of it within make_room_distance
     connected_cavs: bool = False
+    make_room_distance: NonNegativeFloat = 15.0    # [m]
 
 
 class OptionsConfig(Strict):

@@ -101,3 +101,24 @@ def test_commands_of_every_cav_match_the_grid_drivers_lane_changes(driver):
     assert set(commands) == {'a', 'b'}
     assert {vid: c.lane_change for vid, c in commands.items()} == \
         {vid: c.lane_change for vid, c in grid_commands.items()}
+
+
+def test_connected_cavs_make_room_for_a_cav_merging_ahead(driver):
+    """The options' low level (connected_cavs): a CAV keeping lane 1 follows, as a virtual
+    leader, a CAV just ahead in lane 0 that must leave lane 0 before Exit_0; the merger holds
+    its speed and waits for the gap. The grid's rules cut in instead."""
+    connected = RuleBasedDriver(driver.grid, driver.shield, driver.geometry, driver.ramp_speed_limit,
+                                driver.parameters.model_copy(update={'connected_cavs': True}))
+    keeper = make_vehicle('keeper', 'CAV', lane=1, position=60.0, speed=20.0)
+    merger = make_vehicle('merger', 'CAV', lane=0, position=66.0, speed=20.0)
+    snapshot = TrafficSnapshot([keeper, merger])
+    free = driver.preferred(keeper, snapshot)
+    lane_change, made_room = connected.preferred(keeper, snapshot)
+    assert lane_change == 0 and made_room < free[1] and made_room < 0
+    assert connected.preferred(merger, snapshot) == (0, pytest.approx(connected.acceleration(merger, snapshot))), \
+        'holds its own lane\'s speed'
+    assert driver.preferred(merger, snapshot)[0] == 1, \
+        'the grid\'s rules cut in 1 m ahead of the CAV (their IDM check stops at the firm braking)'
+    behind = make_vehicle('merger', 'CAV', lane=0, position=50.0, speed=20.0)   # not ahead: no room made
+    assert connected.preferred(keeper, TrafficSnapshot([keeper, behind]))[1] == pytest.approx(
+        driver.preferred(keeper, TrafficSnapshot([keeper, behind]))[1])

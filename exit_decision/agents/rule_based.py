@@ -131,7 +131,30 @@ class RuleBasedDriver:
         accel = self.acceleration(vehicle, snapshot)
         if lane_change:
             accel = self.gap_search(vehicle, lane_change, snapshot, accel)
+        elif self.parameters.connected_cavs:
+            accel = self.make_room(vehicle, snapshot, accel)
         return 0, accel
+
+    def make_room(self, vehicle: VehicleState, snapshot: TrafficSnapshot, accel: float) -> float:
+        """Connected CAVs make room for each other: a CAV that keeps its lane follows, as a
+        virtual leader, a CAV ahead of it in a next lane (within ``make_room_distance``) whose
+        route needs this lane, so the gap the merger needs opens behind it (the merger holds
+        its own lane's speed meanwhile: ``gap_search``). IDM behind a virtual leader never asks
+        for less than the merger's speed, so no chain of CAVs slows itself down."""
+        if not vehicle.on_highway:
+            return accel
+        p = self.parameters
+        for lane in (vehicle.lane_index - 1, vehicle.lane_index + 1):
+            if not 0 <= lane < self.geometry.lane_count:
+                continue
+            merger = snapshot.neighbours((HIGHWAY, lane), vehicle.position, vehicle.length,
+                                         exclude=vehicle.vehicle_id).leader
+            if (merger is not None and merger.controlled and merger.on_highway
+                    and 0.0 < merger.position - vehicle.position <= p.make_room_distance
+                    and self.target_lane(merger) == vehicle.lane_index):
+                gap = merger.position - merger.length - vehicle.position
+                accel = min(accel, self.idm(vehicle.speed, self.desired_speed(vehicle), gap, merger.speed))
+        return accel
 
     def gap_search(self, vehicle: VehicleState, lane_change: int, snapshot: TrafficSnapshot,
                    accel: float) -> float:
@@ -149,6 +172,8 @@ class RuleBasedDriver:
         to_speed = lambda goal: float(np.clip(goal - vehicle.speed, -p.firm_braking, p.max_acceleration))  # noqa: E731
         if around.leader is not None and around.leader_gap <= around.follower_gap:
             return min(accel, to_speed(around.leader.speed - p.gap_search_speed))
+        if p.connected_cavs and around.follower.controlled:
+            return accel   # a CAV follower makes room (``make_room``): hold the own lane's speed
         pull_ahead = to_speed(around.follower.speed + p.gap_search_speed)
         if accel >= pull_ahead:
             return pull_ahead
