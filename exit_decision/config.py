@@ -295,6 +295,10 @@ class RuleBasedConfig(Strict):
     make_room_distance: NonNegativeFloat = 15.0    # [m]
 
 
+#: a learned policy's action space: the 81-action grid (paper 000) or options (issue 28)
+ActionSpaceName = Literal['grid', 'options']
+
+
 class OptionsConfig(Strict):
     """The options action space (issue 28; exit_decision/agents/options.py)."""
     hold_time: PositiveFloat                     # [s] an option ends after this long at the latest

@@ -2,7 +2,8 @@
 
 One ``step`` is one decision: every CAV row of the action vector gets its own action from
 the ``ActionGrid``, which is held for ``decision_interval`` simulation steps (a lane change
-is issued once). The reward is the paper's global scalar of the reward function matrix under
+is issued once); or, with ``action_space='options'``, an option (agents/options.py) that the
+CAVs whose option ended begin, the rule-based low level making every CAV's command. The reward is the paper's global scalar of the reward function matrix under
 the env's mode, summed over the interval (or a baseline's own reward, ``learning_reward``;
 the episode log, and so every metric, stays under the matrix); ``info['reward_vector']`` holds what any mode's
 scalar is made of (``exit_decision.reward``), split by owner: (N, 4, 2) for the CAV rows
@@ -22,8 +23,9 @@ from gymnasium import spaces
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.lane_planner import LanePlanner
+from exit_decision.agents.options import OptionExecutor, OptionSpace
 from exit_decision.agents.shield import Shield
-from exit_decision.config import ProjectConfig
+from exit_decision.config import ActionSpaceName, ProjectConfig
 from exit_decision.episode_log import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
 from exit_decision.reward import RewardVector, StepRewardInputs, make_reward, scalar
@@ -38,7 +40,8 @@ class ExitDecisionEnv(gym.Env):
 
     def __init__(self, config: ProjectConfig, mode: str | None = None, reward_variant: str | None = None,
                  cav_driver: CavDriver = 'policy', backend: Backend = 'libsumo', keep_step_inputs: bool = False,
-                 single_agent: bool = False, learning_reward: str | None = None):
+                 single_agent: bool = False, learning_reward: str | None = None,
+                 action_space: ActionSpaceName = 'grid'):
         self.config = config
         # the episode's reward inputs, kept to score it under other reward variants afterwards
         self.step_inputs: list[StepRewardInputs] | None = [] if keep_step_inputs else None
@@ -66,7 +69,12 @@ class ExitDecisionEnv(gym.Env):
             'adjacency': spaces.MultiBinary((n, n)),
             'cav_mask': spaces.MultiBinary(n),
         })
-        self.action_space = spaces.MultiDiscrete(np.full(n, self.actions.size))
+        #: ``options``: each CAV row's action is an option (agents/options.py), read only for the
+        #: rows whose option ended (``info['choosing']``); the executor makes the commands
+        self.options = OptionSpace(config, self.shield, self.planner) if action_space == 'options' else None
+        self.executor = OptionExecutor(self.options) if self.options is not None else None
+        size = self.options.size if self.options is not None else self.actions.size
+        self.action_space = spaces.MultiDiscrete(np.full(n, size))
         self._window = max(1, round(LANE_CHANGE_WINDOW / scenario.step_length))
         self.graph: TrafficGraph | None = None
 
@@ -84,7 +92,27 @@ class ExitDecisionEnv(gym.Env):
         self._lane_changes = deque(maxlen=self._window)
         if self.step_inputs is not None:
             self.step_inputs.clear()
-        return self._observation(), {'seed': episode_seed}
+        if self.executor is not None:
+            self.executor.reset()
+        return self._observation(), {'seed': episode_seed, **self._option_info()}
+
+    def _option_info(self) -> dict[str, np.ndarray]:
+        """With options, what the next decision needs: ``choosing`` (N,) the CAV rows whose
+        option ended (only their actions are read), ``option_masks`` (N, options) the options
+        each may begin, and ``options`` (N,) the option each row holds (-1: none)."""
+        if self.executor is None:
+            return {}
+        graph, snapshot, time = self.graph, self.sim.snapshot, self.sim.state.time
+        choosing = np.zeros(graph.num_nodes, dtype=bool)
+        masks = np.zeros((graph.num_nodes, self.options.size), dtype=bool)
+        held = np.full(graph.num_nodes, -1)
+        for row in graph.cav_rows():
+            vehicle = snapshot.by_id[graph.vehicle_ids[row]]
+            choosing[row] = self.executor.ended(vehicle, time)
+            masks[row] = self.options.mask(vehicle)
+            if vehicle.vehicle_id in self.executor.held:
+                held[row] = self.executor.held[vehicle.vehicle_id].index
+        return {'choosing': choosing, 'option_masks': masks, 'options': held}
 
     def commands(self, action: np.ndarray) -> dict:
         """The commands of an action vector (one entry per graph row; CAV rows are used)."""
@@ -93,6 +121,12 @@ class ExitDecisionEnv(gym.Env):
             raise ValueError(f'action must have shape ({self.graph.num_nodes},), got {action.shape}')
         if self.sim.cav_driver != 'policy':
             return {}
+        if self.executor is not None:
+            graph, snapshot = self.graph, self.sim.snapshot
+            row_of, cav_ids = graph.row_of(), graph.cav_ids()
+            self.executor.choose(snapshot, cav_ids, self.sim.state.time,
+                                 lambda vehicle, mask: int(action[row_of[vehicle.vehicle_id]]))
+            return self.executor.commands(snapshot, cav_ids)
         return {self.graph.vehicle_ids[row]: self.actions.command(int(action[row]))
                 for row in self.graph.cav_rows()}
 
@@ -136,7 +170,7 @@ class ExitDecisionEnv(gym.Env):
                 break
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
         reward = float(scalar(per_row.sum(0) + shared, self.learning_weights))
-        info = {'step_results': results, 'reward_vector': (per_row, shared)}
+        info = {'step_results': results, 'reward_vector': (per_row, shared), **self._option_info()}
         return self._observation(), reward, result.terminated, result.truncated and not result.terminated, info
 
     def close(self) -> None:

@@ -158,3 +158,50 @@ def test_the_best_fixed_driver_is_the_best_constant_option_per_mode():
     text = table_markdown(rows, ['AGGI', 'CONI'], 'v')
     assert "AGGI `option_close`" in text and "CONI `option_calm`" in text, 'references are not fixed options'
     assert '+1.000 [+1.000, +1.000] ↑' in text
+
+
+def test_the_env_over_options_reads_only_the_choosing_rows(project_config):
+    from exit_decision.env import ExitDecisionEnv
+
+    env = ExitDecisionEnv(project_config, action_space='options')
+    try:
+        space = env.options
+        assert env.action_space.nvec[0] == space.size
+        _, info = env.reset(seed=3)
+        route = space.index('route', 'neutral')
+
+        def planned(row):
+            return space.planned(env.sim.snapshot.by_id[env.graph.vehicle_ids[row]])
+
+        checked = 0
+        for _ in range(100):                               # held for the hold time, once begun
+            rows = np.flatnonzero(info['choosing'])
+            assert info['option_masks'][rows, route].all()
+            before = {env.graph.vehicle_ids[row]: planned(row) for row in rows}
+            _, _, _, _, info = env.step(np.full(env.graph.num_nodes, route))
+            row_of = env.graph.row_of()
+            kept = [row_of[v] for v, was in before.items() if v in row_of and planned(row_of[v]) == was]
+            assert (info['options'][kept] == route).all() and not info['choosing'][kept].any()
+            checked += len(kept)
+            if checked >= 5:
+                break
+        assert checked >= 5
+        rows = np.flatnonzero(info['options'] == route)
+        rows = rows[~info['choosing'][rows]]
+        # rows that do not choose are not read: a value that is no option changes nothing there
+        ignored = np.full(env.graph.num_nodes, route)
+        ignored[rows] = 10 ** 6
+        _, _, _, _, info = env.step(ignored)
+        assert (info['options'][rows] == route).all()
+        # a masked option for a choosing row is refused
+        while not info['choosing'].any():
+            _, _, _, _, info = env.step(np.full(env.graph.num_nodes, route))
+        chooser = np.flatnonzero(info['choosing'])[0]
+        masked = np.flatnonzero(~info['option_masks'][chooser])
+        if masked.size:
+            action = np.full(env.graph.num_nodes, route)
+            action[chooser] = masked[0]
+            with pytest.raises(ValueError, match='masked'):
+                env.step(action)
+    finally:
+        env.close()
