@@ -18,12 +18,12 @@ The reward is computed in two parts so that one experience can be scored under a
 
 Variants: ``literal`` is the paper as written; ``bounded`` caps every exponent and the
 lane-change count (ours: the literal terms reach 1e10) and counts per-step incentives per
-step (the calibration of earlier releases, kept for the ablation); ``calibrated`` (ours, the
-default) counts the efficiency and smooth-driving incentives per metre driven, so a CAV earns
-them for the road it covers, not for the time it stays (per step, faster safe driving never
-paid: docs/design.md). The safety incentive stays per step (``safety_one`` has no vehicle):
-that is the form the scales were calibrated and every result measured with; it still pays
-time on the road in the safety row (docs/design.md, "Reward", known defect).
+step (the calibration of earlier releases, kept for the ablation); ``calibrated`` (ours)
+counts the efficiency and smooth-driving incentives per metre driven, so a CAV earns them for
+the road it covers, not for the time it stays (per step, faster safe driving never paid:
+docs/design.md), while its safety incentive stays per step, which still pays time on the road;
+``headway`` (ours, the default since issue 28) counts the safety incentive per metre too,
+graded by the time headway kept (``MatrixReward.safety``), Table 4's punishments unchanged.
 """
 from __future__ import annotations
 
