@@ -426,7 +426,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from exit_decision.benchmarks import bench_sweep
         print(bench_sweep(args.config_dir, args.episodes, args.seed))
     if args.what in ('ros', 'all'):
-        from exit_decision.benchmarks import bench_ros
+        from exit_decision.ros.bench import bench_ros
         print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed,
                         args.thread_priority, cpu_split=not args.no_cpu_split))
     return 0

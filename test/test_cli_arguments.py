@@ -25,7 +25,7 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
         ('exit_decision.evaluation.plots', 'make_all'), ('exit_decision.experiments.compare', 'run_sweep'),
         ('exit_decision.experiments.compare', 'run_trainings'), ('exit_decision.benchmarks', 'bench_simulation'),
         ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_sweep'),
-        ('exit_decision.benchmarks', 'bench_ros')]
+        ('exit_decision.ros.bench', 'bench_ros')]
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
 BAD = [

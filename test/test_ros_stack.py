@@ -340,7 +340,7 @@ def test_the_recorders_memory_stays_flat_however_many_messages_it_records(setup,
     vehicles, about 1 KB each: 60 MB if it kept them), once its buffers are warm, its resident
     memory grows by less than 8 MB: room for its 1 MB chunk, its depth-1000 queue and the
     allocator's slack."""
-    from exit_decision.benchmarks import resident_mb
+    from exit_decision.ros.bench import resident_mb
 
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
@@ -956,7 +956,7 @@ def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setu
 def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
     """The benchmark command is what the speed targets are measured with: it runs and says
     what it measured (a short run; its figures are not judged here)."""
-    from exit_decision.benchmarks import bench_ros
+    from exit_decision.ros.bench import bench_ros
     from exit_decision.ros import cpu_affinity
     before = os.sched_getaffinity(0)
     text = bench_ros('', '', 100, 0)
