@@ -142,7 +142,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.reward_variant:
         _known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
-    trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir)
+    trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir, args.action_space)
     policy = trainer.run(episodes, resume=args.resume, init=args.init)
     print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
     return 0
@@ -548,6 +548,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument('--init', type=checkpoint, default=None,
                        help='a policy.pt whose network starts the RL phase (no pre-training)')
     train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
+    train.add_argument('--action-space', choices=['grid', 'options'], default='grid',
+                       help='the 81-action grid (paper 000) or options (config/env.yaml options: a lane intent x a '
+                            'driving style, held until it ends, executed by the rule-based low level)')
     train.set_defaults(func=cmd_train)
 
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')

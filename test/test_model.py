@@ -51,9 +51,9 @@ def test_checkpoints_without_an_action_space_act_on_the_grid_and_an_unknown_one_
     shipped = policy_path(default_policy_dir(), 'gqn', 'AGGI')
     assert load_policy(shipped).action_space == 'grid'
     data = torch.load(shipped, weights_only=True)
-    data['metadata']['action_space'] = 'options'
+    data['metadata']['action_space'] = 'thoughts'
     torch.save(data, tmp_path / 'policy.pt')
-    with pytest.raises(PolicyError, match="action space 'options' is not known; known: grid"):
+    with pytest.raises(PolicyError, match="action space 'thoughts' is not known; known: grid, options"):
         load_policy(tmp_path / 'policy.pt')
     data['metadata']['action_space'] = 'grid'
     torch.save(data, tmp_path / 'policy.pt')

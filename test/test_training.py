@@ -118,3 +118,34 @@ def test_train_refuses_episodes_when_the_config_budgets_environment_steps(config
                  '--mode', 'CONP', '--episodes', '3', '--out', str(tmp_path / 'run')]) == 2
     assert "--episodes 3: this config's budget for gqn is environment_steps: 100" in capsys.readouterr().err
     assert not (tmp_path / 'run').exists()
+
+
+def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_path):
+    """Issue 28: the same loop over options: every CAV row acts with the option it holds, a row
+    whose option goes on bootstraps on it; the checkpoint says its action space, evaluation
+    drives it through the low level, and a grid-only caller refuses it in one line."""
+    from exit_decision.agents.options import OptionSpace
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.model.policy import load_controller
+
+    config = load_project(config_dir, overrides=[TINY])
+    trainer = Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'run', action_space='options')
+    transitions = trainer.collect_episode(800_000, demonstrate=True, epsilon=0.0)
+    neutral = trainer.options.index('route', 'neutral')
+    acted = [t.actions[t.actions >= 0] for t in transitions]
+    assert all((a == neutral).all() for a in acted), 'the demonstrator: the neutral style, the route plan'
+    assert any(t.continuing.any() for t in transitions) and any((~t.continuing & (t.actions >= 0)).any()
+                                                                for t in transitions)
+    policy_path = trainer.run(episodes=2, progress=False)
+    policy = load_policy(policy_path)
+    assert policy.action_space == 'options' and policy.network.shape.num_actions == trainer.options.size
+    evaluate_runs(config, [policy_path], [], ['AGGI'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
+                  command='test')
+    assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_conditioned_AGGI']['p_CAV'][0] <= 1.0
+    env = ExitDecisionEnv(config)
+    try:
+        with pytest.raises(PolicyError, match='a policy over options; this command runs policies over grid only'):
+            load_controller(config, policy_path, env.shield, env.planner)
+        assert OptionSpace(config, env.shield, env.planner).size == trainer.options.size
+    finally:
+        env.close()

@@ -9,12 +9,13 @@ from typing import Protocol
 import numpy as np
 from tqdm import tqdm
 
-from exit_decision.agents.options import OptionExecutor
+from exit_decision.agents.options import OptionExecutor, OptionSpace
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
+from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights
-from exit_decision.model.policy import load_controller
+from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.reward import scalar
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.traffic import TrafficSnapshot, VehicleState
@@ -93,6 +94,27 @@ def run_option_episode(env: ExitDecisionEnv, executor: OptionExecutor,
     return run_commands_episode(env, commands_of, seed)
 
 
+def run_option_policy(env: ExitDecisionEnv, controller: PolicyController, weights: np.ndarray | None,
+                      seeds: Sequence[int], desc: str | None = None) -> list[dict]:
+    """A policy over options on the seeds (``run_episodes``' rows): at each decision step the
+    CAVs whose option ended begin the allowed option of highest Q value."""
+    controller.network_weights(weights)   # refused now, not at the first decision
+    executor = OptionExecutor(OptionSpace(env.config, controller.shield, controller.planner))
+    out = []
+    for seed in tqdm(seeds, desc=desc, unit='ep', disable=desc is None):
+        executor.reset()
+
+        def commands_of(env: ExitDecisionEnv) -> dict:
+            graph, snapshot = env.graph, env.sim.snapshot
+            executor.choose(snapshot, graph.cav_ids(), env.sim.state.time,
+                            controller.option_chooser(graph, snapshot, weights))
+            return executor.commands(snapshot, graph.cav_ids())
+
+        metrics = run_commands_episode(env, commands_of, seed)
+        out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
+    return out
+
+
 def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
                  result: EvaluationResult | None = None, desc: str | None = None,
                  show: ShowEpisodes | None = None) -> list[dict]:
@@ -127,17 +149,22 @@ def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str]
     each mode's weights, a per-mode one acts once (for its own mode). ``name``: the run's
     (default <algorithm>_<mode> of the checkpoint)."""
     config = env.config
-    controller = load_controller(config, path, env.shield, env.planner)
+    controller = load_controller(config, path, env.shield, env.planner, action_spaces=('grid', 'options'))
     policy, modes_weights = controller.policy, ModeWeights(config)
+    if policy.action_space == 'options' and show is not None:
+        raise PolicyError(f'{policy.path}: --show draws grid policies only (not yet a policy over options)')
     name = name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:
             result = EvaluationResult()
-            acting = controller.at(modes_weights.weights(mode) if policy.conditioned else None)
-            played = run_episodes(env, acting, seeds, result,
-                                  desc=f'{name} at {mode}' if policy.conditioned else name,
-                                  show=show and show.named(f'{name}_{mode}' if policy.conditioned else name,
-                                                           mode if policy.conditioned else policy.metadata['mode']))
+            weights = modes_weights.weights(mode) if policy.conditioned else None
+            desc = f'{name} at {mode}' if policy.conditioned else name
+            if policy.action_space == 'options':
+                played = run_option_policy(env, controller, weights, seeds, desc)
+            else:
+                played = run_episodes(env, controller.at(weights), seeds, result, desc=desc,
+                                      show=show and show.named(f'{name}_{mode}' if policy.conditioned else name,
+                                                               mode if policy.conditioned else policy.metadata['mode']))
         runs.append(EvaluatedRun(f'{name}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result))
     return runs

@@ -5,7 +5,8 @@ row's m-step return (its own credit or the shared reward, scored under the batch
 mode weights w by the trainer) and gamma^K the window's discount:
 - single (GQN, DQN):    y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_target(s')_i
 - double (MDGQN, DDQN): y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_online(s')_i
-(the m of the window is the method's: 1 for GQN, 3 for MDGQN). With prioritized replay each
+(the m of the window is the method's: 1 for GQN, 3 for MDGQN). Over options, a row whose option
+is still held at s' bootstraps on Q(s')_i[a_i], the option it holds (intra-option learning). With prioritized replay each
 transition's loss is weighted by its importance weight and its new priority is the largest
 |TD error| of its rows. A
 mode-conditioned network evaluates every Q at the same w the reward was scored with. A row whose
@@ -65,6 +66,8 @@ class GraphQAgent:
         else:
             chooser = target_q
         best = self.masked_argmax(chooser, next_mask)
+        if 'continuing' in batch:   # options: a row whose option goes on is valued by that option
+            best = torch.where(batch['continuing'][b, r], batch['actions'][b, r], best)
         bootstrap = target_q.gather(1, best.unsqueeze(1)).squeeze(1)
         bootstrap = torch.where(alive, bootstrap, torch.zeros_like(bootstrap))
         return batch['rewards'][b, r] + batch['discounts'][b] * bootstrap

@@ -6,7 +6,10 @@ returns R = sum_k gamma^k r_{t+k} as *reward vectors* (4 rows x [incentive, puni
 ``exit_decision.reward``), so a sampled transition can be scored under any mode; the
 bootstrap discount gamma^K, or 0 when the episode terminated inside the window; and per row
 whether the same vehicle is still in that row at t + K (a CAV that left or collided gets a
-terminal target). Two returns are kept: each acting row's own credit (its own terms plus an
+terminal target). With options (``DecisionRecord.choosing``), every CAV row acts at every
+decision with the option it holds, and a row whose option is still held at t + K bootstraps on
+that option's value instead of the best one (intra-option Q-learning, Sutton, Precup and Singh
+1999: the option's value is discounted by the time it is held). Two returns are kept: each acting row's own credit (its own terms plus an
 equal share of the terms no CAV owns, summed only while the same vehicle holds the row) and
 the episode's global vector (the paper's shared reward, for the ablation).
 ``ReplayBuffer`` stores them in flat arrays (masks and adjacency bit-packed) and samples
@@ -32,6 +35,7 @@ class DecisionRecord:
     masks: np.ndarray        # (N, A) bool, the masks the actions were chosen under
     own: np.ndarray | None = None      # (N, 4, 2) each acting row's own reward vector until the next decision
     shared: np.ndarray | None = None   # (4, 2) the terms no acting row owns
+    choosing: np.ndarray | None = None  # (N,) bool, options: the rows that began their option here (None: grid)
 
     def credit(self) -> np.ndarray:
         """(N, 4, 2): each acting row's own terms plus an equal share of the shared ones."""
@@ -51,6 +55,7 @@ class Transition:
     global_return: np.ndarray  # (4, 2) the shared reward vector, m-step discounted
     discount: float
     alive: np.ndarray        # (N,) bool: same vehicle in the row at the next state
+    continuing: np.ndarray   # (N,) bool: options: the row's option still held at the next state
     next_features: np.ndarray
     next_adjacency: np.ndarray
     next_masks: np.ndarray
@@ -91,6 +96,9 @@ class EpisodeAccumulator:
         span = end - t
         ids, next_ids = np.array(start.graph.vehicle_ids), np.array(stop.graph.vehicle_ids)
         returns, global_return = np.zeros_like(start.own), np.zeros((4, 2))
+        continuing = np.zeros(len(ids), bool)
+        if start.choosing is not None:   # options: held to the next state if no later record chose anew
+            continuing = ~np.any([self.records[t + k].choosing for k in range(1, span + 1)], axis=0)
         for k in range(span):
             record = self.records[t + k]
             same = np.array(record.graph.vehicle_ids) == ids
@@ -101,6 +109,7 @@ class EpisodeAccumulator:
             masks=start.masks, returns=returns, global_return=global_return,
             discount=0.0 if terminated else self.gamma ** span,
             alive=(ids == next_ids) & (ids != '') & stop.graph.cav_mask,
+            continuing=continuing & (ids == next_ids) & (start.actions >= 0),
             next_features=stop.graph.features, next_adjacency=stop.graph.adjacency,
             next_masks=stop.masks)
 
@@ -133,6 +142,7 @@ class ReplayBuffer:
         self.global_returns = np.zeros((capacity, 4, 2), np.float32)
         self.discounts = np.zeros(capacity, np.float32)
         self.alive = np.zeros((capacity, n), bool)
+        self.continuing = np.zeros((capacity, n), bool)
         self.size = 0
         self._next = 0
         self.num_nodes = n
@@ -152,6 +162,7 @@ class ReplayBuffer:
         self.returns[i], self.global_returns[i] = transition.returns, transition.global_return
         self.discounts[i] = transition.discount
         self.alive[i] = transition.alive
+        self.continuing[i] = transition.continuing
         self._next = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         return i
@@ -167,7 +178,7 @@ class ReplayBuffer:
             'next_masks': np.unpackbits(self.next_masks[indices], axis=-1, count=a).astype(bool),
             'returns': self.returns[indices], 'global_returns': self.global_returns[indices],
             'discounts': self.discounts[indices],
-            'alive': self.alive[indices],
+            'alive': self.alive[indices], 'continuing': self.continuing[indices],
         }
 
 

@@ -43,7 +43,7 @@ from tqdm import tqdm
 
 from exit_decision.actions import NO_ACTION
 from exit_decision.agents.rule_based import RuleBasedDriver
-from exit_decision.config import ProjectConfig
+from exit_decision.config import ActionSpaceName, ProjectConfig
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.encoders import StateEncoder
@@ -101,8 +101,10 @@ class WeightSampler:
 
 
 class Trainer:
-    def __init__(self, config: ProjectConfig, algorithm: str, mode: str, seed: int, out_dir: Path):
-        """``algorithm``: a method of the training config (gqn, mdgqn, dqn, ...)."""
+    def __init__(self, config: ProjectConfig, algorithm: str, mode: str, seed: int, out_dir: Path,
+                 action_space: ActionSpaceName = 'grid'):
+        """``algorithm``: a method of the training config (gqn, mdgqn, dqn, ...); ``action_space``:
+        the 81-action grid or options (agents/options.py)."""
         # Small networks: one thread is as fast as two here, and two threads collapse (80x
         # slower, measured) as soon as anything else runs on the other core.
         torch.set_num_threads(1)
@@ -119,8 +121,11 @@ class Trainer:
             config.mode(mode)   # an unknown mode fails here, naming the known ones
         self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
         # SGRL trains one CAV at a time (the others drive as humans); validation runs every CAV
+        self.action_space = action_space
         self.env = ExitDecisionEnv(config, mode=self.validation_modes[0], single_agent=method.single_agent,
-                                   learning_reward=method.reward_variant)
+                                   learning_reward=method.reward_variant, action_space=action_space)
+        self.options = self.env.options   # None on the grid
+        num_actions = self.options.size if self.options is not None else self.env.actions.size
         # as published: the bare shield and no planner (the env's serve the teacher)
         self.grid = self.env.actions
         self.shield = self.env.shield if method.measures else self.env.shield.bare()
@@ -134,17 +139,17 @@ class Trainer:
                                  'speed_limit': scenario.road.highway_speed_limit}
         self.encoder = StateEncoder(**self.encoder_settings)
         net = method.network
-        self.shape = NetworkShape(self.encoder.num_features, self.grid.size, tuple(net.encoder), net.gcn,
+        self.shape = NetworkShape(self.encoder.num_features, num_actions, tuple(net.encoder), net.gcn,
                                   tuple(net.head), WEIGHT_INPUT_SIZE if self.conditioned else 0, net.dueling,
                                   net.adjacency_input, n if net.adjacency_input else 0)
         self.agent = GraphQAgent(self.shape, UpdateSettings(
             method.double, t.learning_rate, t.tau, t.demonstrations.margin, t.gradient_clip), seed)
         self.multi_step = method.multi_step
-        self.replay = ReplayBuffer(t.replay_size, n, self.shape.num_features, self.grid.size)
+        self.replay = ReplayBuffer(t.replay_size, n, self.shape.num_features, num_actions)
         self.priorities = PrioritizedSampler(t.replay_size, method.prioritized.alpha, method.prioritized.beta) \
             if method.prioritized else None
         self.demos = ReplayBuffer(max(1, 250 * t.demonstrations.episodes), n, self.shape.num_features,
-                                  self.grid.size)
+                                  num_actions)
         self.demonstrator = RuleBasedDriver.for_env(self.env)
         self.state = TrainingState()
 
@@ -196,6 +201,8 @@ class Trainer:
                         on_decision=None) -> list:
         """One episode by the demonstrator or the epsilon-greedy policy; returns its
         transitions. ``on_decision(transitions)`` is called after every decision (learning)."""
+        if self.options is not None:
+            return self.collect_option_episode(seed, demonstrate, epsilon, on_decision)
         env = self.env
         env.reset(seed=seed)
         accumulator = EpisodeAccumulator(self.multi_step, self.training.gamma)
@@ -223,6 +230,42 @@ class Trainer:
             if terminated or truncated:
                 return transitions
 
+    def collect_option_episode(self, seed: int, demonstrate: bool, epsilon: float, on_decision=None) -> list:
+        """``collect_episode`` over options: the rows whose option ended choose (the
+        demonstrator: the neutral style on the route's lane plan, the same for every mode; the
+        policy: epsilon-greedy over the allowed options), every CAV row acts with the option it
+        holds, and the low level makes the commands."""
+        env, space = self.env, self.options
+        _, info = env.reset(seed=seed)
+        accumulator = EpisodeAccumulator(self.multi_step, self.training.gamma)
+        transitions = []
+        neutral = space.index('route', 'neutral')
+        weights = None if demonstrate else self.episode_weights()
+        while True:
+            graph = env.graph
+            observed = self.encoder.encode(graph, env.sim.snapshot)
+            choosing, masks, held = info['choosing'], info['option_masks'], info['options']
+            if demonstrate:
+                chosen = np.full(graph.num_nodes, neutral)
+            else:
+                q = np.where(masks, q_values(self.agent.online, observed, weights), -np.inf)
+                chosen = q.argmax(1)
+                for row in np.flatnonzero(choosing):
+                    if self.rng.random() < epsilon:
+                        chosen[row] = self.rng.choice(np.flatnonzero(masks[row]))
+            actions = np.where(choosing, chosen, held).astype(np.int64)
+            actions[~graph.cav_mask.astype(bool)] = NO_ACTION
+            _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, neutral))
+            own, shared = info['reward_vector']
+            emitted = accumulator.add(DecisionRecord(observed, actions, masks, own, shared, choosing))
+            if terminated or truncated:
+                emitted += accumulator.finish(self.final_record(info), terminated)
+            transitions += emitted
+            if on_decision is not None:
+                on_decision(emitted)
+            if terminated or truncated:
+                return transitions
+
     def decision_arrays(self, graph, decision) -> tuple[np.ndarray, np.ndarray]:
         n = graph.num_nodes
         actions = np.full(n, NO_ACTION, np.int64)
@@ -233,9 +276,14 @@ class Trainer:
             masks[row_of[vehicle_id]] = decision.masks[vehicle_id]
         return actions, masks
 
-    def final_record(self) -> DecisionRecord:
-        """The last state, with the masks its CAVs would choose under (for bootstrapping)."""
+    def final_record(self, info: dict | None = None) -> DecisionRecord:
+        """The last state, with the masks its CAVs would choose under (for bootstrapping; over
+        options, the step's ``info`` has them, and every row chooses anew there)."""
         graph, planner = self.env.graph, self.planner
+        if self.options is not None:
+            return DecisionRecord(self.encoder.encode(graph, self.env.sim.snapshot),
+                                  np.full(graph.num_nodes, NO_ACTION, np.int64), info['option_masks'],
+                                  choosing=np.ones(graph.num_nodes, bool))
         snapshot = self.env.sim.snapshot
         masks = np.zeros((graph.num_nodes, self.grid.size), bool)
         for vehicle_id, row in graph.row_of().items():
@@ -315,7 +363,8 @@ class Trainer:
             'feature_set': c.graph.feature_set,
             'num_nodes': c.graph.max_vehicles, 'num_features': self.shape.num_features,
             'decision_interval': c.env.decision_interval, 'action_grid': c.env.actions.model_dump(),
-            'action_space': 'grid', 'multi_step': self.multi_step, 'git_revision': git_revision(),
+            'action_space': self.action_space, 'multi_step': self.multi_step, 'git_revision': git_revision(),
+            **({'options': c.env.options.model_dump()} if self.options is not None else {}),
             'episode': self.state.episode, 'updates': self.state.updates,
             'training': c.training.model_dump(),
         }
@@ -395,7 +444,7 @@ class Trainer:
         clock['pretraining'] = time.monotonic()
         if demo.pretrain_updates or init is not None:   # a network that learnt already is fine-tuned
             self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
-        task = ValidationTask(self.config, self.validation_modes, self.validation_seeds())
+        task = ValidationTask(self.config, self.validation_modes, self.validation_seeds(), self.action_space)
         with Validator(task, self.training.validation.parallel, self.env) as validator:
             if self.state.episode == 0:
                 validator.submit(self.save_candidate())   # the pre-trained policy is a candidate too

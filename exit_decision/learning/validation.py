@@ -2,9 +2,10 @@
 
 A candidate runs greedily on the validation seeds in every validation mode (a conditioned
 policy at each mode's weights; a per-mode policy once, scored under its mode). Each mode's
-row holds its safety figures and the mean paired return gain over the neutral rule-based
-teacher on the same seeds (the teacher's runs are made once per process and scored under
-every mode from their reward vectors). ``selection_score`` turns the rows into the number
+row holds its safety figures and the mean paired return gain over the teacher on the same
+seeds: the neutral rule-based driver for a grid policy, the best fixed driver of the mode (the
+best constant option) for a policy over options (the teacher's runs are made once per process
+and scored under every mode from their reward vectors). ``selection_score`` turns the rows into the number
 the trainer keeps the best checkpoint by.
 """
 from __future__ import annotations
@@ -25,23 +26,47 @@ class ValidationTask:
     config: ProjectConfig
     modes: list[str]
     seeds: list[int]
+    action_space: str = 'grid'   # options: the teacher is the best fixed driver of each mode
 
 
 _worker: dict = {}   # per process: the env and the teacher's episodes (libsumo: one simulation per process)
 
 
-def _env_and_teacher(task: ValidationTask, env=None):
+def _teacher_episodes(task: ValidationTask, env) -> dict[str, list[dict]]:
+    """Per validation mode, the episodes of the driver a candidate is judged against: the
+    neutral rule-based driver on the grid; over options, the best fixed driver of that mode
+    (the constant option, one style on the route's lane plan, of highest mean return)."""
+    from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
+    from exit_decision.evaluation.evaluate import run_episodes, run_option_episode, scored_episodes
+
+    if task.action_space == 'grid':
+        episodes = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
+        return dict.fromkeys(task.modes, episodes)
+    space = OptionSpace(task.config, env.shield, env.planner)
+    executor = OptionExecutor(space)
+    by_style = {}
+    for style in task.config.env.options.styles:
+        constant = space.index('route', style)
+        by_style[style] = [{'seed': seed, **run_option_episode(env, executor, lambda v, m: constant, seed),
+                            'reward_vector': env.episode_log.reward_vector.copy()} for seed in task.seeds]
+
+    def mean_return(episodes, mode):
+        return np.mean([e['reward'] for e in scored_episodes(episodes, env.reward_fn.weights(task.config.mode(mode)))])
+
+    return {mode: max(by_style.values(), key=lambda episodes: mean_return(episodes, mode)) for mode in task.modes}
+
+
+def _env_and_teacher(task: ValidationTask, env=None):
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import run_episodes
 
     if env is None:
         if 'env' not in _worker:
             _worker['env'] = ExitDecisionEnv(task.config, mode=task.modes[0])
         env = _worker['env']
-    key = (tuple(task.seeds), id(env), task.config.model_dump_json())   # another run or env: another teacher
+    key = (tuple(task.seeds), id(env), task.config.model_dump_json(), task.action_space)   # another run: another teacher
     if _worker.get('teacher_seeds') != key:
-        _worker['teacher'] = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
+        _worker['teacher'] = _teacher_episodes(task, env)
         _worker['teacher_seeds'] = key
     return env, _worker['teacher']
 
@@ -56,7 +81,7 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
     max_steps = task.config.scenario.max_steps
     out = {}
     for run, mode in zip(evaluate_policy(env, path, task.modes, task.seeds), task.modes):
-        theirs = scored_episodes(teacher, env.reward_fn.weights(task.config.mode(mode)))
+        theirs = scored_episodes(teacher[mode], env.reward_fn.weights(task.config.mode(mode)))
         own = np.array([e['reward'] for e in run.episodes])
         gain, low, high = paired_interval(own - np.array([e['reward'] for e in theirs]))
         out[mode] = {

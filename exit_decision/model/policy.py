@@ -37,7 +37,7 @@ from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
 #: the action spaces a checkpoint's metadata may name (``action_space``; a checkpoint without it: 'grid')
-ACTION_SPACES = ('grid',)
+ACTION_SPACES = ('grid', 'options')
 
 
 def git_revision() -> str:
@@ -91,6 +91,8 @@ class GraphPolicy:
         grid = ActionGrid(config.env.actions)
         if grid.size != self.grid.size or not np.allclose(grid.accelerations, self.grid.accelerations):
             raise PolicyError(f'{self.path}: its action grid differs from the configured one')
+        if self.action_space == 'options' and self.metadata.get('options') != config.env.options.model_dump():
+            raise PolicyError(f'{self.path}: trained over other options than config/env.yaml\'s `options`')
 
     @property
     def conditioned(self) -> bool:
@@ -190,8 +192,19 @@ class PolicyController:
     def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot, weights: np.ndarray | None = None) -> Decision:
         """The decision for the CAVs of ``graph``, built from the vehicles of ``snapshot``, in the
         mode of ``weights`` (six numbers, ``modes``; None: the policy's own mode)."""
+        if self.policy.action_space != 'grid':
+            raise PolicyError(f'{self.policy.path}: a policy over {self.policy.action_space} decides through '
+                              f'option_chooser, not on the action grid')
         q = self.policy.q_values(graph, snapshot, self.network_weights(weights))
         return greedy_decision(self.shield, graph, snapshot, q, planner=self.planner)
+
+    def option_chooser(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
+                       weights: np.ndarray | None = None) -> Callable[[VehicleState, np.ndarray], int]:
+        """A policy over options at one decision: ``chooser(vehicle, mask)`` gives the allowed
+        option of highest Q value of the vehicle's row (for ``agents.options.OptionExecutor``)."""
+        q = self.policy.q_values(graph, snapshot, self.network_weights(weights))
+        row_of = graph.row_of()
+        return lambda vehicle, mask: int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
 
     def at(self, weights: np.ndarray | None) -> PolicyAt:
         """This policy deciding for ``weights`` only, as a driver decides (refused now, not at
@@ -215,13 +228,17 @@ class PolicyAt:
 
 
 def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, planner: LanePlanner | None = None,
-                    planned: Planned | None = None) -> PolicyController:
+                    planned: Planned | None = None, action_spaces: tuple[str, ...] = ('grid',)) -> PolicyController:
     """The policy at ``path``, checked against ``config`` (graph, decision interval, action grid)
     and, for a ``planned`` (algorithm, mode), against that: conditioned as the algorithm's name
     says, or trained for that mode; ready to decide under ``shield`` (and ``planner``).
-    PolicyError, naming the path, for a policy that is missing, unreadable or does not fit."""
+    PolicyError, naming the path, for a policy that is missing, unreadable or does not fit, or
+    acts in an action space not in ``action_spaces``."""
     policy = load_policy(path)
     policy.check_compatible(config)
+    if policy.action_space not in action_spaces:
+        raise PolicyError(f'{policy.path}: a policy over {policy.action_space}; this command runs policies over '
+                          f'{" or ".join(action_spaces)} only')
     if planned is not None:
         algorithm, mode = planned
         if policy.conditioned != is_conditioned(algorithm):
