@@ -231,8 +231,11 @@ def cmd_options_table(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir, args.scenario_override, args.override)
     for variant in args.variant:
         _known('--variant', variant, config.reward)
+    if args.policy is not None:
+        from exit_decision.model.policy import load_policy
+        load_policy(args.policy).check_compatible(config)
     print(write_table(config, list(range(args.seed, args.seed + args.episodes)),
-                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation))
+                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation, args.policy))
     return 0
 
 
@@ -684,6 +687,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help='first seed (default: the validation seeds; 10000: the test seeds)')
     options.add_argument('--variant', action='append', default=[],
                          help='reward variant to score under (repeatable; default: env.yaml\'s)')
+    options.add_argument('--policy', type=checkpoint, default=None,
+                         help='a policy.pt (grid or options) to judge against the best fixed driver of each mode '
+                              'and SUMO\'s drivers on the same seeds')
     options.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
     options.add_argument('--out', type=Path, default=Path('docs/results/options'))
     options.set_defaults(func=cmd_options_table)

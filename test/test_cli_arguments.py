@@ -57,6 +57,7 @@ BAD = [
     ['reward-sanity', '--low-level', 'nope'], ['reward-sanity', '--episodes', '0'], ['reward-sanity', '--seed', '-1'], ['reward-sanity', '--jobs', '0'],
     ['options-table', '--episodes', '0'], ['options-table', '--seed', '-1'], ['options-table', '--jobs', '0'],
     ['options-table', '--config-dir', 'MISSING'], ['options-table', '--variant', 'NOPE'],
+    ['options-table', '--policy', NOT_CHECKPOINT], ['options-table', '--policy', 'MISSING'],
     ['tradeoff', '--policy', NOT_CHECKPOINT], ['tradeoff', '--policy', 'MISSING'], ['tradeoff', '--episodes', '0'],
     ['tradeoff', '--seed', '-1'],
     ['plot', '--runs', 'MISSING'], ['plot', '--evaluation', 'MISSING'],

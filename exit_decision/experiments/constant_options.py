@@ -33,13 +33,23 @@ def option_run_name(style: str) -> str:
 def _episode(task: tuple) -> list[dict]:
     """One run on one seed, in a worker process: a row per reward variant, with the return
     under every mode."""
-    config, run, seed, variants = task
+    config, run, seed, variants, policy = task
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import EvaluationResult, run_episode, run_option_episode
+    from exit_decision.evaluation.evaluate import (EvaluationResult, run_episode, run_episodes, run_option_episode,
+                                                   run_option_policy)
+    from exit_decision.model.modes import ModeWeights
+    from exit_decision.model.policy import load_controller
 
     env = _worker_env(config, 'sumo' if run == 'sumo' else 'policy')
-    if run == 'sumo':
+    if run.startswith('policy_'):
+        controller = load_controller(config, policy, env.shield, env.planner, action_spaces=('grid', 'options'))
+        mode = run.removeprefix('policy_')
+        weights = ModeWeights(config).weights(mode) if controller.policy.conditioned else None
+        played = (run_option_policy(env, controller, weights, [seed]) if controller.policy.action_space == 'options'
+                  else run_episodes(env, controller.at(weights), [seed]))
+        metrics = {k: v for k, v in played[0].items() if k not in ('seed', 'reward_vector')}
+    elif run == 'sumo':
         metrics = run_episode(env, None, seed, EvaluationResult())
     elif run == 'grid_rule_based':
         metrics = run_episode(env, RuleBasedDriver.for_env(env), seed, EvaluationResult())
@@ -66,9 +76,14 @@ def _worker_env(config: ProjectConfig, cav_driver: str):
     return _ENV
 
 
-def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int) -> list[dict]:
+def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int,
+              policy: Path | None = None) -> list[dict]:
+    """The rows of every run on every seed; ``policy``: also that policy at each mode of the
+    matrix (``policy_<mode>``: a conditioned one acts at the mode's weights)."""
     runs = [option_run_name(style) for style in config.env.options.styles] + list(REFERENCES)
-    tasks = [(config, run, seed, variants) for run in runs for seed in seeds]
+    if policy is not None:
+        runs += [f'policy_{mode}' for mode in config.mode_matrix.modes]
+    tasks = [(config, run, seed, variants, policy) for run in runs for seed in seeds]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         return [row for rows in tqdm(pool.map(_episode, tasks, chunksize=4), total=len(tasks),
                                      desc='constant options', unit='ep') for row in rows]
@@ -79,7 +94,7 @@ def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: st
     difference to the neutral option; then, per mode, the best constant option (the best fixed
     driver)."""
     rows = [r for r in rows if r['variant'] == variant]
-    runs = list(dict.fromkeys(r['run'] for r in rows))
+    runs = [run for run in dict.fromkeys(r['run'] for r in rows) if not run.startswith('policy_')]
     by = {(r['run'], int(r['seed'])): r for r in rows}
     seeds = sorted(s for run, s in by if run == neutral)
     lines = [f'### Reward variant `{variant}` ({len(seeds)} seeds)', '', '| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
@@ -98,14 +113,27 @@ def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: st
         lines.append(f'| {run} | ' + ' | '.join(cells) + ' |')
     lines += ['', 'The best fixed driver (the best constant option) per mode: '
               + ', '.join(f'{mode} `{run}` ({value:.3f})' for mode, (run, value) in best.items()) + '.']
+    if any((f'policy_{mode}', seeds[0]) in by for mode in modes):
+        lines += ['', '| policy at mode | ' + ' | '.join(COLUMNS) + ' | return | − the best fixed driver | − SUMO\'s drivers |',
+                  '|---' * (4 + len(COLUMNS)) + '|']
+        for mode in modes:
+            episodes = [by[(f'policy_{mode}', s)] for s in seeds]
+            own = np.array([float(e[f'return_{mode}']) for e in episodes])
+            cells = [f'{np.nanmean([float(e[c]) for e in episodes]):.3g}' for c in COLUMNS] + [f'{own.mean():.3f}']
+            for other in (best[mode][0], 'sumo'):
+                mean, low, high = paired_interval(own - [float(by[(other, s)][f'return_{mode}']) for s in seeds])
+                mark = ' ↑' if low > 0 else ' ↓' if high < 0 else ''
+                cells.append(f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]{mark}')
+            lines.append(f'| {mode} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 
 
 def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,
-                command: str) -> str:
+                command: str, policy: Path | None = None) -> str:
     """Runs the table and writes ``constant_options.csv`` (per episode and reward variant) and
-    ``.md`` into ``out_dir``."""
-    rows = run_table(config, seeds, variants, jobs)
+    ``.md`` into ``out_dir``; with a ``policy``, its runs at each mode against the best fixed
+    driver of that mode and SUMO's drivers, paired on the same seeds."""
+    rows = run_table(config, seeds, variants, jobs, policy)
     write_rows(out_dir / 'constant_options.csv', rows)
     text = (f'# Constant options and the references, scored under every mode\n\nMade by `{command}` (seeds '
             f'{seeds[0]}..{seeds[-1]}); per-episode rows in '
