@@ -1,0 +1,34 @@
+"""The figures the main job prints around a mode switch, from hand-made steps."""
+import math
+
+import pytest
+
+from exit_decision.evaluation.switch import switch_windows
+
+from conftest import make_vehicle
+
+
+def test_before_and_after_the_switch_for_the_cavs_on_the_road_at_it():
+    steps = []
+    for k in range(200):                       # 20 s at 0.1 s, the switch at 10 s
+        time = k * 0.1
+        after = time >= 10.0
+        speed = 15.0 if after else 20.0
+        cav = make_vehicle('cav', 'CAV', position=100.0 + k, speed=speed,
+                           acceleration=-5.0 if k in (50, 51, 150) else 0.0)
+        leader = make_vehicle('lead', 'HV1', position=100.0 + k + 5.0 + (30.0 if after else 20.0), speed=speed)
+        vehicles = [cav, leader]
+        if k > 120:                            # a CAV that entered after the switch is not followed
+            vehicles.append(make_vehicle('late', 'CAV', lane=1, position=0.0, speed=1.0, acceleration=-9.0))
+        steps.append((time, vehicles))
+    before, after = switch_windows(steps, switch_time=10.0)
+    assert before.cavs == after.cavs == 1
+    assert before.speed == pytest.approx(20.0) and after.speed == pytest.approx(15.0)
+    assert before.headway == pytest.approx(20.0 / 20.0) and after.headway == pytest.approx(30.0 / 15.0)
+    assert before.hard_brakings == 1 and after.hard_brakings == 1, 'a run of steps counts once, the late CAV never'
+
+
+def test_no_leader_in_range_gives_no_headway():
+    steps = [(k * 0.1, [make_vehicle('cav', 'CAV', speed=20.0)]) for k in range(40)]
+    before, after = switch_windows(steps, switch_time=2.0, window=2.0)
+    assert math.isnan(before.headway) and math.isnan(after.headway) and before.speed == 20.0
