@@ -11,9 +11,9 @@ from exit_decision_msgs.msg import CavCommandArray, TrafficGraph as GraphMsg, Ve
 
 from exit_decision.config import GraphConfig  # noqa: E402
 from exit_decision.graph import GraphBuilder  # noqa: E402
-from exit_decision.ros.conversions import (MessageError, commands_from_msg, commands_to_msg,  # noqa: E402
-                                           graph_from_msg, graph_to_msg, stamp_of, states_from_msg,
-                                           states_to_msg)
+from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, commands_to_msg,  # noqa: E402
+                                                    graph_from_msg, graph_to_msg, stamp_of, states_from_msg,
+                                                    states_to_msg)
 from exit_decision.traffic import CavCommand  # noqa: E402
 
 from conftest import make_vehicle  # noqa: E402
@@ -95,7 +95,7 @@ def test_malformed_messages_are_rejected_naming_the_field():
         commands_from_msg(commands)
 
 
-# --- vehicle states as CDR bytes (ros/states_cdr.py: what the bridge publishes and the nodes decode) ---
+# --- vehicle states as CDR bytes (ros/messages/states_cdr.py: what the bridge publishes and the nodes decode) ---
 
 HIGHWAY = ('Highway_0', 'Highway_1', 'Highway_2')
 
@@ -119,7 +119,7 @@ def episode_states(steps: int = 300):
 def test_states_encoded_as_cdr_are_the_message_rclpy_reads():
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from exit_decision.ros.states_cdr import decode_states, encode_states
+    from exit_decision.ros.messages.states_cdr import decode_states, encode_states
     vehicles_seen = 0
     for step, vehicles in episode_states():
         ours = encode_states(vehicles, episode=3, step=step, step_length=0.1)
@@ -136,7 +136,7 @@ def test_states_encoded_as_cdr_are_the_message_rclpy_reads():
 def test_malformed_cdr_states_are_refused_naming_what():
     from rclpy.serialization import serialize_message
 
-    from exit_decision.ros.states_cdr import decode_states, encode_states
+    from exit_decision.ros.messages.states_cdr import decode_states, encode_states
     vehicles = sample_vehicles()
     little = encode_states(vehicles, episode=1, step=5, step_length=0.1)
     assert decode_states(little, HIGHWAY).vehicles == vehicles
@@ -167,12 +167,12 @@ def test_a_message_too_short_for_its_header_is_an_input_error():
         episode_and_step(b'\x00\x01\x00\x00\x00\x00')
 
 
-# --- CAV commands as CDR bytes (ros/commands_cdr.py: what the decision node publishes and the bridge decodes) ---
+# --- CAV commands as CDR bytes (ros/messages/commands_cdr.py: the decision node encodes, the bridge decodes) ---
 
 def test_commands_encoded_as_cdr_are_the_message_rclpy_reads():
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from exit_decision.ros.commands_cdr import decode_commands, encode_commands
+    from exit_decision.ros.messages.commands_cdr import decode_commands, encode_commands
     rng = np.random.default_rng(0)
     for count in (0, 1, 2, 7, 12):   # strings of every length modulo 4 shift what follows them
         commands = {f'CAV_{int(serial)}': CavCommand(int(rng.integers(-1, 2)), float(rng.uniform(-8, 5)))
@@ -190,7 +190,7 @@ def test_commands_encoded_as_cdr_are_the_message_rclpy_reads():
 
 
 def test_malformed_cdr_commands_are_refused_naming_what():
-    from exit_decision.ros.commands_cdr import decode_commands, encode_commands
+    from exit_decision.ros.messages.commands_cdr import decode_commands, encode_commands
     fields = dict(episode=0, step=5, stamp=stamp_of(0.5), mode='AGGI', algorithm='gqn', policy='p')
     good = encode_commands({'CAV_1': CavCommand(0, 1.0), 'CAV_12': CavCommand(1, -2.0), 'CAV_2': CavCommand(0, 0.5)},
                            **fields)

@@ -19,10 +19,10 @@ from rosbags.rosbag2 import Reader
 from exit_decision.config import load_project
 from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags import read_messages
-from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode)
-from exit_decision.ros.commands_cdr import encode_commands
-from exit_decision.ros.conversions import graph_from_msg, states_from_msg
+from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
+                                      GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode)
+from exit_decision.ros.messages.commands_cdr import encode_commands
+from exit_decision.ros.messages.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
 from exit_decision.ros.replay import replay_decisions
 from exit_decision.ros.stack_nodes import plan
@@ -447,7 +447,7 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
 
     from exit_decision.ros.bags import typestore
     from exit_decision.ros.common import CLOCK_QOS, CLOCK_TOPIC
-    from exit_decision.ros.conversions import stamp_of
+    from exit_decision.ros.messages.conversions import stamp_of
 
     bag = tmp_path / 'bag'
     store = typestore()
@@ -480,7 +480,7 @@ def bad_messages(latest: VehicleStateArray) -> list:
     starts no bridge sent."""
     from rclpy.serialization import serialize_message
 
-    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.messages.conversions import states_to_msg
     from conftest import make_vehicle
 
     episode, step = latest.episode, latest.step
@@ -886,7 +886,7 @@ def write_episode_bag(bag, config_dir, steps: int = 40, with_graphs: bool = True
 
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.ros.bags import typestore
-    from exit_decision.ros.conversions import episode_event_to_msg, graph_to_msg, states_to_msg
+    from exit_decision.ros.messages.conversions import episode_event_to_msg, graph_to_msg, states_to_msg
 
     config = load_project(config_dir)
     road = config.scenario.road

@@ -107,7 +107,7 @@ def test_markers_become_a_marker_array_in_frame_map(layout):
 
 
 def _stamp():
-    from exit_decision.ros.conversions import stamp_of
+    from exit_decision.ros.messages.conversions import stamp_of
     return stamp_of(0.0)
 
 
@@ -123,7 +123,7 @@ def write_fixture_bag(path, layout, lane_shift=0):
     from exit_decision.graph import TrafficGraph
     from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
     from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
-    from exit_decision.ros.conversions import commands_to_msg, graph_to_msg, stamp_of, states_to_msg
+    from exit_decision.ros.messages.conversions import commands_to_msg, graph_to_msg, stamp_of, states_to_msg
 
     store = typestore()
     vehicles = {}
@@ -221,7 +221,7 @@ def first_markers(test, publisher, arrays) -> int:
     from exit_decision_msgs.msg import EpisodeEvent
 
     from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS
-    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.messages.conversions import states_to_msg
 
     events = test.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
     events.publish(EpisodeEvent(episode=0, event=EpisodeEvent.EVENT_STARTED))   # transient local: it reaches a late joiner
@@ -238,7 +238,7 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     from visualization_msgs.msg import Marker, MarkerArray
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
-    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.launcher import start_node
     from ros_helpers import stop
 
@@ -265,7 +265,7 @@ def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
     from visualization_msgs.msg import MarkerArray
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
-    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.launcher import start_node
     from ros_helpers import stop
 
@@ -296,7 +296,7 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
     from visualization_msgs.msg import MarkerArray
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
-    from exit_decision.ros.conversions import states_to_msg
+    from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.launcher import start_node
     from ros_helpers import stop
     from test_ros_stack import diagnostics_of
@@ -386,8 +386,8 @@ def write_events_and_overrides(path, layout, p_collision):
 
     from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
     from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
-    from exit_decision.ros.conversions import (commands_to_msg, episode_event_to_msg, overrides_to_msg, stamp_of,
-                                               states_to_msg)
+    from exit_decision.ros.messages.conversions import (commands_to_msg, episode_event_to_msg, overrides_to_msg,
+                                                        stamp_of, states_to_msg)
     from exit_decision.shield_overrides import ShieldOverride
 
     store = typestore()

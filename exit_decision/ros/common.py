@@ -60,7 +60,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from exit_decision.config import ConfigError, ProjectConfig, default_config_dir, load_project  # noqa: E402
 from exit_decision.errors import PolicyError  # noqa: E402
 from exit_decision.input_checks import InputError  # noqa: E402
-from exit_decision.ros.states_cdr import checked_states_cdr  # noqa: E402
+from exit_decision.ros.messages.states_cdr import checked_states_cdr  # noqa: E402
 from exit_decision.step_gaps import episode_and_step  # noqa: E402
 
 STATES_TOPIC = '/exit_decision/vehicle_states'

@@ -57,8 +57,8 @@ from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, pl
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
                                       declare_cpu_affinity, declare_thread_priority, describe, run_node)
-from exit_decision.ros.commands_cdr import encode_commands
-from exit_decision.ros.conversions import graph_from_msg, overrides_to_msg
+from exit_decision.ros.messages.commands_cdr import encode_commands
+from exit_decision.ros.messages.conversions import graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.shield_overrides import shield_overrides
 from exit_decision.input_checks import InputError, StateLimits, StepGate

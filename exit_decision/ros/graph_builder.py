@@ -24,7 +24,7 @@ from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputErro
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
                                       Diagnostics, declare_config, declare_cpu_affinity, declare_thread_priority,
                                       run_node)
-from exit_decision.ros.conversions import graph_to_msg
+from exit_decision.ros.messages.conversions import graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.traffic import TrafficSnapshot

@@ -31,7 +31,7 @@ from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
 
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
-from exit_decision.ros.conversions import metrics_from_event
+from exit_decision.ros.messages.conversions import metrics_from_event
 from exit_decision.ros.cpu_affinity import pinned
 from exit_decision.ros.stack_nodes import BRIDGE, cores, plan
 from exit_decision.errors import StackError

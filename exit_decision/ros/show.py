@@ -18,13 +18,8 @@ from exit_decision.config import ProjectConfig
 from exit_decision.errors import UsageError
 from exit_decision.ros.bags import BagError, open_bag, read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
-from exit_decision.ros.conversions import (
-    MessageError,
-    commands_from_msg,
-    graph_from_msg,
-    overrides_from_msg,
-    states_from_msg,
-)
+from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, graph_from_msg, overrides_from_msg,
+                                                    states_from_msg)
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import VehicleState
 from exit_decision.visualization.figures import TimeSpace, render_episode

@@ -33,30 +33,10 @@ from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
 from exit_decision.input_checks import StateLimits, StepGate
-from exit_decision.ros.common import (
-    COMMANDS_TOPIC,
-    DIAGNOSTICS_TOPIC,
-    EPISODE_TOPIC,
-    EVENT_QOS,
-    GRAPH_TOPIC,
-    MARKERS_TOPIC,
-    OVERRIDES_TOPIC,
-    STATES_TOPIC,
-    STREAM_QOS,
-    Diagnostics,
-    declare,
-    declare_config,
-    declare_cpu_affinity,
-    describe,
-    follow,
-    run_node,
-)
-from exit_decision.ros.conversions import (
-    MessageError,
-    commands_from_msg,
-    graph_from_msg,
-    overrides_from_msg,
-)
+from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
+                                      MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS, Diagnostics, declare,
+                                      declare_config, declare_cpu_affinity, describe, follow, run_node)
+from exit_decision.ros.messages.conversions import MessageError, commands_from_msg, graph_from_msg, overrides_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec

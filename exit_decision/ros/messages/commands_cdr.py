@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 from builtin_interfaces.msg import Time
 
-from exit_decision.ros.cdr import EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish, pad, \
-    read_string, string
-from exit_decision.ros.conversions import MessageError, check_vehicle_entry
+from exit_decision.ros.messages.cdr import (EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish,
+                                            pad, read_string, string)
+from exit_decision.ros.messages.conversions import MessageError, check_vehicle_entry
 from exit_decision.traffic import CavCommand
 
 _LANE_CHANGE = struct.Struct('<b')

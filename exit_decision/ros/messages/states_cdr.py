@@ -20,9 +20,10 @@ from dataclasses import dataclass
 from builtin_interfaces.msg import Time
 
 from exit_decision.input_checks import StateLimits
-from exit_decision.ros.cdr import EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish, pad, string
-from exit_decision.ros.conversions import (CLASS_CODES, CLASS_NAMES, MessageError, check_unique_ids,
-                                           check_vehicle_fields, stamp_of)
+from exit_decision.ros.messages.cdr import (EPISODE_STEP, LITTLE_ENDIAN, STAMP, UINT32, check_little_endian, finish,
+                                            pad, string)
+from exit_decision.ros.messages.conversions import (CLASS_CODES, CLASS_NAMES, MessageError, check_unique_ids,
+                                                    check_vehicle_fields, stamp_of)
 from exit_decision.traffic import VehicleState
 
 

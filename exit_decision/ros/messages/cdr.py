@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import struct
 
-from exit_decision.ros.conversions import MessageError
+from exit_decision.ros.messages.conversions import MessageError
 
 LITTLE_ENDIAN = b'\x00\x01\x00\x00'   # CDR_LE, no options
 UINT32 = struct.Struct('<I')
