@@ -25,13 +25,13 @@ setup(
     entry_points={
         'console_scripts': [
             'exit-decision = exit_decision.cli:main',
-            'sumo_bridge = exit_decision.ros.sumo_bridge:main',
-            'graph_builder = exit_decision.ros.graph_builder:main',
-            'decision_node = exit_decision.ros.decision_node:main',
-            'graph_and_decision = exit_decision.ros.graph_and_decision:main',
-            'recorder = exit_decision.ros.recorder:main',
-            'player = exit_decision.ros.player:main',
-            'visualizer = exit_decision.ros.visualizer:main',
+            'sumo_bridge = exit_decision.ros.nodes.sumo_bridge:main',
+            'graph_builder = exit_decision.ros.nodes.graph_builder:main',
+            'decision_node = exit_decision.ros.nodes.decision_node:main',
+            'graph_and_decision = exit_decision.ros.nodes.graph_and_decision:main',
+            'recorder = exit_decision.ros.nodes.recorder:main',
+            'player = exit_decision.ros.nodes.player:main',
+            'visualizer = exit_decision.ros.nodes.visualizer:main',
         ],
     },
 )

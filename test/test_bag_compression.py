@@ -87,7 +87,7 @@ KILLED_WRITER = textwrap.dedent('''
     from exit_decision_msgs.msg import CavCommand, CavCommandArray
     from rclpy.serialization import serialize_message
     from exit_decision.ros.bags import typestore
-    from exit_decision.ros.recorder import flush
+    from exit_decision.ros.nodes.recorder import flush
     from test_bag_compression import writer_of
     writer = writer_of(Path(sys.argv[1]), sys.argv[2])
     connection = writer.add_connection('/exit_decision/cav_commands', 'exit_decision_msgs/msg/CavCommandArray',

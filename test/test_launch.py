@@ -81,7 +81,8 @@ def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_
     mode); no bag path given: the recorder's time-stamped default, so a second launch works; the
     recorder's compression by default (`exit-decision stack` takes this argument's default too)."""
     from exit_decision.config import load_project
-    from exit_decision.ros import bags, recorder
+    from exit_decision.ros import bags
+    from exit_decision.ros.nodes import recorder
 
     declared, actions = launch_description(monkeypatch, {})
     assert declared['mode'] == load_project().mode_matrix.aggressive.punished == 'AGGP'
@@ -217,7 +218,8 @@ def test_every_entry_point_takes_the_default_from_one_place():
         if 'rclpy.init(' in path.read_text():
             starters.add(path.relative_to(REPO).as_posix())
     assert starters == {'exit_decision/ros/common.py'}
-    for module in [node.executable for node in NODES] + ['graph_builder', 'decision_node', 'player', 'launcher']:
+    for module in [f'nodes/{node.executable}' for node in NODES] + ['nodes/graph_builder', 'nodes/decision_node',
+                                                                     'nodes/player', 'launcher']:
         tree = ast.parse((REPO / 'exit_decision' / 'ros' / f'{module}.py').read_text())
         imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
         assert 'exit_decision.ros.common' in imported, module

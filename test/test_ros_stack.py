@@ -382,7 +382,7 @@ def test_the_recorders_memory_stays_flat_however_many_messages_it_records(setup,
 
 def test_a_recorder_killed_with_sigkill_leaves_a_bag_repair_recovers(setup, tmp_path, capsys):
     from exit_decision.cli import main
-    from exit_decision.ros.recorder import FLUSH_PERIOD
+    from exit_decision.ros.nodes.recorder import FLUSH_PERIOD
 
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')

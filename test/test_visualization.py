@@ -91,7 +91,7 @@ def test_markers_of_a_snapshot_show_each_vehicle_in_its_class_colour_and_delete_
 def test_markers_become_a_marker_array_in_frame_map(layout):
     from visualization_msgs.msg import Marker
 
-    from exit_decision.ros.visualizer import marker_array
+    from exit_decision.ros.nodes.visualizer import marker_array
 
     frames = FrameBuilder(layout, STEP)
     vehicles = snapshot()

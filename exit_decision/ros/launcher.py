@@ -48,7 +48,7 @@ def executable(name: str) -> list[str]:
         installed = None
     if installed is not None and installed.is_file() and os.access(installed, os.X_OK):
         return [str(installed)]
-    return [sys.executable, '-m', f'exit_decision.ros.{name}']
+    return [sys.executable, '-m', f'exit_decision.ros.nodes.{name}']
 
 
 def ros_args(parameters: dict[str, object]) -> list[str]:

@@ -66,7 +66,7 @@ ARGUMENTS: dict[str, Argument] = {
 
 NODES: tuple[StackNode, ...] = (
     StackNode('recorder', ('bag_path', 'compression', 'config_dir', 'use_sim_time'), listens_to_states=True),
-    # the graph builder and the decision node in one process (ros/graph_and_decision.py): the
+    # the graph builder and the decision node in one process (ros/nodes/graph_and_decision.py): the
     # graph builder listens to the states and hands the decision node its graphs
     StackNode('graph_and_decision', ('config_dir', 'policy_dir', 'mode', 'modes', 'algorithm', 'use_sim_time',
                                      'thread_priority'), listens_to_states=True,

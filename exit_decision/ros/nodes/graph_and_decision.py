@@ -20,8 +20,8 @@ it alone takes the states.
 from __future__ import annotations
 
 from exit_decision.ros.common import ParameterError, run_node
-from exit_decision.ros.decision_node import DecisionNode
-from exit_decision.ros.graph_builder import GraphBuilderNode
+from exit_decision.ros.nodes.decision_node import DecisionNode
+from exit_decision.ros.nodes.graph_builder import GraphBuilderNode
 
 
 def make_nodes() -> list:

@@ -30,7 +30,7 @@ from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.traffic import TrafficSnapshot
 
 if TYPE_CHECKING:
-    from exit_decision.ros.decision_node import DecisionNode
+    from exit_decision.ros.nodes.decision_node import DecisionNode
 
 
 class GraphBuilderNode(Node):

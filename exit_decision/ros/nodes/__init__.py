@@ -1,0 +1,1 @@
+"""The executables: one node (or one process of composed nodes) a module, each with its main()."""
