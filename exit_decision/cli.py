@@ -322,9 +322,9 @@ def cmd_stack(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Re-run the decision policy on a bag's recorded graphs; compare with its commands."""
-    from exit_decision.ros.bags import BagError
+    from exit_decision.ros.bags.storage import BagError
     from exit_decision.model.names import default_policy_dir
-    from exit_decision.ros.replay import replay_decisions
+    from exit_decision.ros.bags.replay import replay_decisions
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     if args.mode:
@@ -344,7 +344,7 @@ def cmd_fixture_record(args: argparse.Namespace) -> int:
     """Record the replay fixture again (after a policy, the shield or the graph changed on purpose)."""
     from datetime import datetime
 
-    from exit_decision.ros.replay import record_fixture
+    from exit_decision.ros.bags.replay import record_fixture
 
     print(record_fixture(args.out, Path('runs') / 'stack_logs' / f'fixture_{datetime.now():%Y%m%d_%H%M%S}'))
     return 0
@@ -352,7 +352,8 @@ def cmd_fixture_record(args: argparse.Namespace) -> int:
 
 def cmd_bag_repair(args: argparse.Namespace) -> int:
     """Make a bag whose recorder was killed readable up to its last complete chunk."""
-    from exit_decision.ros.bags import BagError, repair_bag
+    from exit_decision.ros.bags.repair import repair_bag
+    from exit_decision.ros.bags.storage import BagError
 
     try:
         print(repair_bag(args.bag).summary())
@@ -365,7 +366,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     """Time-space diagrams and bird's-eye clips of a bag's episodes."""
     if not args.bag.exists():   # before loading ROS: the commonest mistake, answered fast
         raise UsageError(f'{args.bag}: no such bag (give the directory the recorder wrote)')
-    from exit_decision.ros.show import show_bag
+    from exit_decision.ros.bags.show import show_bag
 
     config = load_project(args.config_dir)
     for shown in show_bag(args.bag, config, args.out, episode=args.episode, start=args.start, end=args.end,

@@ -17,7 +17,7 @@ from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader
 
 from exit_decision.cli import main
-from exit_decision.ros.bags import COMPRESSIONS, open_writer, read_messages, typestore
+from exit_decision.ros.bags.storage import COMPRESSIONS, open_writer, read_messages, typestore
 from exit_decision.ros.common import COMMANDS_TOPIC
 
 TESTS = Path(__file__).resolve().parent
@@ -86,7 +86,7 @@ KILLED_WRITER = textwrap.dedent('''
     from pathlib import Path
     from exit_decision_msgs.msg import CavCommand, CavCommandArray
     from rclpy.serialization import serialize_message
-    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.bags.storage import typestore
     from exit_decision.ros.nodes.recorder import flush
     from test_bag_compression import writer_of
     writer = writer_of(Path(sys.argv[1]), sys.argv[2])
@@ -128,7 +128,7 @@ def compressed_fixtures(tmp_path_factory):
 
 @pytest.mark.parametrize('compression', ['zstd', 'lz4'])
 def test_replay_decides_a_compressed_bag_as_the_uncompressed_one(compressed_fixtures, compression):
-    from exit_decision.ros.replay import check_fixture
+    from exit_decision.ros.bags.replay import check_fixture
     plain, packed = check_fixture(FIXTURE), check_fixture(compressed_fixtures[compression])
     # whether the replay reproduces the recording is test_replay_fixture's: here, the same report
     assert packed.commands > 0 and (packed.summary(limit=0), packed.differences) == (plain.summary(limit=0),

@@ -12,7 +12,8 @@ from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 from exit_decision.cli import main
-from exit_decision.ros.bags import BagError, read_messages, repair_bag, typestore
+from exit_decision.ros.bags.repair import repair_bag
+from exit_decision.ros.bags.storage import BagError, read_messages, typestore
 from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC
 from exit_decision.step_gaps import StepGaps, episode_and_step
 
@@ -46,7 +47,7 @@ KILLED_WRITER = textwrap.dedent('''
     from exit_decision_msgs.msg import CavCommand, CavCommandArray
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.bags.storage import typestore
     writer = Writer(Path(sys.argv[1]), version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
     connection = writer.add_connection('/exit_decision/cav_commands', 'exit_decision_msgs/msg/CavCommandArray',

@@ -16,8 +16,8 @@ NOT_CHECKPOINT = str(REPO / 'README.md')
 #: that is where a bag that cannot be read is refused)
 WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.trainer', 'Trainer'),
         ('exit_decision.evaluation.report', 'evaluate_runs'), ('exit_decision.evaluation.report', 'results_page'),
-        ('exit_decision.ros.launcher', 'run_stack'), ('exit_decision.ros.replay', 'record_fixture'),
-        ('exit_decision.ros.show', 'show_bag'), ('exit_decision.experiments.ablation', 'run_ablation'),
+        ('exit_decision.ros.launcher', 'run_stack'), ('exit_decision.ros.bags.replay', 'record_fixture'),
+        ('exit_decision.ros.bags.show', 'show_bag'), ('exit_decision.experiments.ablation', 'run_ablation'),
         ('exit_decision.experiments.reward_sanity', 'write_sanity'),
         ('exit_decision.experiments.reward_sanity', 'calibrate'),
         ('exit_decision.experiments.tradeoff', 'run_tradeoff'),

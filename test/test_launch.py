@@ -81,7 +81,7 @@ def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_
     mode); no bag path given: the recorder's time-stamped default, so a second launch works; the
     recorder's compression by default (`exit-decision stack` takes this argument's default too)."""
     from exit_decision.config import load_project
-    from exit_decision.ros import bags
+    from exit_decision.ros.bags import storage
     from exit_decision.ros.nodes import recorder
 
     declared, actions = launch_description(monkeypatch, {})
@@ -90,7 +90,7 @@ def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_
     assert nodes['graph_and_decision']['mode'] == 'AGGP'
     assert declared['bag_path'] == '' and 'bag_path' not in nodes['recorder']
     assert declared['compression'] == nodes['recorder']['compression'] == recorder.DEFAULT_COMPRESSION == 'zstd'
-    assert sorted(ARGUMENTS['compression'].choices) == sorted(bags.COMPRESSIONS)
+    assert sorted(ARGUMENTS['compression'].choices) == sorted(storage.COMPRESSIONS)
     refusal = "argument compression: 'gzip' is not allowed; allowed: zstd | none"
     with pytest.raises(ValueError, match=re.escape(refusal)):
         plan({'compression': 'gzip'})

@@ -9,9 +9,9 @@ import pytest
 from exit_decision.config import load_project
 from exit_decision.errors import PolicyError
 from exit_decision.model.names import default_policy_dir, policy_path
-from exit_decision.ros.bags import read_messages
+from exit_decision.ros.bags.storage import read_messages
 from exit_decision.ros.common import COMMANDS_TOPIC
-from exit_decision.ros.replay import check_fixture, replay_decisions
+from exit_decision.ros.bags.replay import check_fixture, replay_decisions
 
 FIXTURE = Path(__file__).parent / 'fixtures' / 'replay_bag'
 RE_RECORD = 'if the change is meant, record the fixture again: exit-decision fixture record'

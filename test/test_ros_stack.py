@@ -18,13 +18,13 @@ from rosbags.rosbag2 import Reader
 
 from exit_decision.config import load_project
 from exit_decision.graph import GraphBuilder
-from exit_decision.ros.bags import read_messages
+from exit_decision.ros.bags.storage import read_messages
 from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
                                       GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode)
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.launcher import run_stack, start_node
-from exit_decision.ros.replay import replay_decisions
+from exit_decision.ros.bags.replay import replay_decisions
 from exit_decision.ros.stack_nodes import plan
 from exit_decision import traffic
 from exit_decision.scenario.geometry import RoadGeometry
@@ -445,7 +445,7 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
     from rclpy.serialization import serialize_message
     from rosgraph_msgs.msg import Clock
 
-    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.bags.storage import typestore
     from exit_decision.ros.common import CLOCK_QOS, CLOCK_TOPIC
     from exit_decision.ros.messages.conversions import stamp_of
 
@@ -885,7 +885,7 @@ def write_episode_bag(bag, config_dir, steps: int = 40, with_graphs: bool = True
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.ros.bags import typestore
+    from exit_decision.ros.bags.storage import typestore
     from exit_decision.ros.messages.conversions import episode_event_to_msg, graph_to_msg, states_to_msg
 
     config = load_project(config_dir)

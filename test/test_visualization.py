@@ -121,7 +121,7 @@ def write_fixture_bag(path, layout, lane_shift=0):
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from exit_decision.graph import TrafficGraph
-    from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
+    from exit_decision.ros.bags.storage import DEFAULT_TOPICS, typestore
     from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
     from exit_decision.ros.messages.conversions import commands_to_msg, graph_to_msg, stamp_of, states_to_msg
 
@@ -159,7 +159,7 @@ def class_pixels(image: np.ndarray, box, colour, tolerance=12) -> int:
 
 
 def test_show_draws_every_vehicle_of_a_bag_in_its_class_colour_and_a_clip(project_config, layout, tmp_path):
-    from exit_decision.ros.show import show_bag
+    from exit_decision.ros.bags.show import show_bag
 
     bag = tmp_path / 'bag'
     vehicles = write_fixture_bag(bag, layout)
@@ -384,7 +384,7 @@ def write_events_and_overrides(path, layout, p_collision):
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from exit_decision.ros.bags import DEFAULT_TOPICS, typestore
+    from exit_decision.ros.bags.storage import DEFAULT_TOPICS, typestore
     from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
     from exit_decision.ros.messages.conversions import (commands_to_msg, episode_event_to_msg, overrides_to_msg,
                                                         stamp_of, states_to_msg)
@@ -425,7 +425,7 @@ def write_events_and_overrides(path, layout, p_collision):
 @pytest.mark.parametrize('p_collision', [0.5, 0.0])
 def test_show_marks_overrides_every_cav_lane_change_and_trusts_the_bridges_collision_count(
         project_config, layout, tmp_path, p_collision):
-    from exit_decision.ros.show import show_bag
+    from exit_decision.ros.bags.show import show_bag
 
     bag = tmp_path / 'bag'
     write_events_and_overrides(bag, layout, p_collision)
@@ -445,7 +445,7 @@ def test_show_marks_overrides_every_cav_lane_change_and_trusts_the_bridges_colli
 def test_show_reads_the_replay_fixture_recorded_before_overrides_had_a_topic(project_config, tmp_path):
     from pathlib import Path
 
-    from exit_decision.ros.show import show_bag
+    from exit_decision.ros.bags.show import show_bag
 
     bag = Path(__file__).parent / 'fixtures' / 'replay_bag' / 'bag'
     [shown] = show_bag(bag, project_config, tmp_path / 'out', start=0.0, end=5.0, progress=False)

@@ -54,7 +54,7 @@ ARGUMENTS: dict[str, Argument] = {
     'timing': Argument('synchronous', 'synchronous or realtime'),
     'bag_path': Argument('', 'bag directory (must not exist); empty: the recorder\'s default, '
                              'bags/exit_decision_<date>_<time>, a new one each run'),
-    # the recorder's default; the values of bags.COMPRESSIONS (this table imports no rclpy)
+    # the recorder's default; the values of COMPRESSIONS in ros/bags/storage.py (this table imports no rclpy)
     'compression': Argument('zstd', 'mcap chunk compression of the bag: zstd or none', choices=('zstd', 'none')),
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),

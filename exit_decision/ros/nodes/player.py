@@ -26,7 +26,8 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
 
-from exit_decision.ros.bags import BAG_ALLOWED, READ_ERRORS, BagError, first_line, message_class, open_bag, topic_qos
+from exit_decision.ros.bags.storage import (BAG_ALLOWED, READ_ERRORS, BagError, first_line, message_class, open_bag,
+                                            topic_qos)
 from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC, ParameterError, declare,
                                       declare_cpu_affinity, describe, follow, run_node)
 

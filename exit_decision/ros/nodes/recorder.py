@@ -33,8 +33,8 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosbags.rosbag2 import Writer, WriterError
 
-from exit_decision.ros.bags import COMPRESSIONS, DEFAULT_TOPICS, KNOWN_TOPICS, message_class, open_writer, topic_qos, \
-    typestore
+from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_TOPICS, message_class, open_writer,
+                                            topic_qos, typestore)
 from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
                                       ParameterError, check_choice, declare, declare_config, declare_cpu_affinity,
                                       describe, run_node)
