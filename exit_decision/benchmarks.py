@@ -1,5 +1,5 @@
 """Benchmark commands of the core: figures printed, never asserted in tests (the ROS stack's
-benchmark, ``bench ros``, is ``exit_decision.ros.bench``)."""
+benchmark, ``bench ros``, is ``exit_decision.ros.stack.bench``)."""
 from __future__ import annotations
 
 import time

@@ -27,7 +27,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def _thread_priority(parser: argparse.ArgumentParser, what: str = '') -> None:
-    from exit_decision.ros.realtime import DESCRIPTION, PRIORITIES
+    from exit_decision.ros.stack.realtime import DESCRIPTION, PRIORITIES
 
     def priority(text: str) -> int:
         if not text.isdigit() or int(text) not in PRIORITIES:
@@ -68,7 +68,7 @@ def _known_algorithm(algorithm: str, config) -> None:
 
 def _check_thread_priority(priority: int) -> None:
     """Before anything starts: a priority this user may not take is one line, not a node dying."""
-    from exit_decision.ros.realtime import refusal
+    from exit_decision.ros.stack.realtime import refusal
     reason = refusal(priority) if priority else None
     if reason:
         raise UsageError(f'--thread-priority {reason}')
@@ -272,7 +272,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from datetime import datetime
 
     from exit_decision.evaluation.metrics import markdown_table, summarize
-    from exit_decision.ros.launcher import free_bag_path, run_stack
+    from exit_decision.ros.stack.launcher import free_bag_path, run_stack
 
     from exit_decision.model.names import SHIPPED_ALGORITHMS
 
@@ -430,7 +430,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from exit_decision.benchmarks import bench_sweep
         print(bench_sweep(args.config_dir, args.episodes, args.seed))
     if args.what in ('ros', 'all'):
-        from exit_decision.ros.bench import bench_ros
+        from exit_decision.ros.stack.bench import bench_ros
         print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed,
                         args.thread_priority, cpu_split=not args.no_cpu_split))
     return 0
@@ -515,7 +515,7 @@ COUNT, SEED, STEP = number(int, 1), number(int, 0), number(int, 0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from exit_decision.ros.stack_nodes import ARGUMENTS as STACK_ARGUMENTS   # rclpy-free, as this parser
+    from exit_decision.ros.stack.node_table import ARGUMENTS as STACK_ARGUMENTS   # rclpy-free, as this parser
 
     parser = Parser(prog='exit-decision', description=__doc__)
     commands = parser.add_subparsers(dest='command', required=True)

@@ -6,7 +6,7 @@ class PolicyError(RuntimeError):
 
 
 class StackError(RuntimeError):
-    """The ROS stack could not run (``ros/launcher.py``): a node exited early, the nodes did not
+    """The ROS stack could not run (``ros/stack/launcher.py``): a node exited early, the nodes did not
     come up or the run did not finish in time; one line, with where the logs are."""
 
 

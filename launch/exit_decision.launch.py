@@ -2,7 +2,7 @@
 
     ros2 launch exit_decision exit_decision.launch.py episodes:=1
 
-The nodes of the one table in ``exit_decision/ros/stack_nodes.py`` (the one `exit-decision
+The nodes of the one table in ``exit_decision/ros/stack/node_table.py`` (the one `exit-decision
 stack` starts from): a recorder writing a bag (by default a new time-stamped one under bags/,
 so every run works), the graph builder and the decision node (in one process,
 `graph_and_decision`; in mode AGGP unless `mode:=` says otherwise, as `exit-decision stack`),
@@ -18,7 +18,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from exit_decision.ros.dds_defaults import apply_dds_defaults
-from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODE_NAMES, plan
+from exit_decision.ros.stack.node_table import ARGUMENTS, BRIDGE, NODE_NAMES, plan
 
 apply_dds_defaults()   # this process too (launch_ros may start a node in it), and every node it starts
 

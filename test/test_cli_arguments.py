@@ -16,7 +16,7 @@ NOT_CHECKPOINT = str(REPO / 'README.md')
 #: that is where a bag that cannot be read is refused)
 WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.trainer', 'Trainer'),
         ('exit_decision.evaluation.report', 'evaluate_runs'), ('exit_decision.evaluation.report', 'results_page'),
-        ('exit_decision.ros.launcher', 'run_stack'), ('exit_decision.ros.bags.replay', 'record_fixture'),
+        ('exit_decision.ros.stack.launcher', 'run_stack'), ('exit_decision.ros.bags.replay', 'record_fixture'),
         ('exit_decision.ros.bags.show', 'show_bag'), ('exit_decision.experiments.ablation', 'run_ablation'),
         ('exit_decision.experiments.reward_sanity', 'write_sanity'),
         ('exit_decision.experiments.reward_sanity', 'calibrate'),
@@ -25,7 +25,7 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
         ('exit_decision.evaluation.plots', 'make_all'), ('exit_decision.experiments.compare', 'run_sweep'),
         ('exit_decision.experiments.compare', 'run_trainings'), ('exit_decision.benchmarks', 'bench_simulation'),
         ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_sweep'),
-        ('exit_decision.ros.bench', 'bench_ros')]
+        ('exit_decision.ros.stack.bench', 'bench_ros')]
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
 BAD = [

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from exit_decision.ros.launcher import ros_args
+from exit_decision.ros.stack.launcher import ros_args
 from test_packaging import declared_pip_keys
 
 REPO = Path(__file__).resolve().parent.parent
@@ -167,8 +167,8 @@ def test_every_node_starts_from_the_install(install, bare_python, environment, t
     from rosbags.rosbag2 import Reader
     from visualization_msgs.msg import MarkerArray
 
-    from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, MARKERS_TOPIC,
-                                          STATES_TOPIC, STREAM_QOS, ProbeNode)
+    from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, MARKERS_TOPIC, STATES_TOPIC,
+                                          STREAM_QOS, ProbeNode)
 
     def start(name: str, parameters: dict) -> subprocess.Popen:
         return subprocess.Popen([str(bare_python), str(install / 'lib' / 'exit_decision' / name),

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from exit_decision.ros.stack_nodes import ARGUMENTS, BRIDGE, NODE_NAMES, NODES, plan, process_of
+from exit_decision.ros.stack.node_table import ARGUMENTS, BRIDGE, NODE_NAMES, NODES, plan, process_of
 
 REPO = Path(__file__).resolve().parent.parent
 LAUNCH_FILE = REPO / 'launch' / 'exit_decision.launch.py'
@@ -124,7 +124,7 @@ def test_the_decision_path_and_the_onlookers_get_cores_of_their_own(monkeypatch,
     """cpu_split (the default): the bridge and graph_and_decision on the first half of the cores
     the stack may use, the recorder and the visualizer on the rest; no pinning when false, with
     a real-time thread_priority, or with one core."""
-    from exit_decision.ros import cpu_affinity
+    from exit_decision.ros.stack import cpu_affinity
     monkeypatch.setattr(cpu_affinity, 'usable', lambda: usable)
     nodes = dict(plan({}))
     if expected is None:
@@ -162,7 +162,7 @@ def python(code: str, **env_changes) -> str:
 LAUNCHER_CHILD = '''
 import os, time
 from pathlib import Path
-from exit_decision.ros.launcher import start_node
+from exit_decision.ros.stack.launcher import start_node
 from exit_decision.ros.common import ProbeNode
 probe = ProbeNode('loopback_probe')   # the launcher's helper node: created in this same process
 child = start_node('graph_builder', {}, Path(os.devnull))
@@ -219,7 +219,7 @@ def test_every_entry_point_takes_the_default_from_one_place():
             starters.add(path.relative_to(REPO).as_posix())
     assert starters == {'exit_decision/ros/common.py'}
     for module in [f'nodes/{node.executable}' for node in NODES] + ['nodes/graph_builder', 'nodes/decision_node',
-                                                                     'nodes/player', 'launcher']:
+                                                                     'nodes/player', 'stack/launcher']:
         tree = ast.parse((REPO / 'exit_decision' / 'ros' / f'{module}.py').read_text())
         imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
         assert 'exit_decision.ros.common' in imported, module
@@ -233,7 +233,7 @@ def test_sigterm_stops_a_decision_node_on_sim_time_with_no_clock(tmp_path):
     from rcl_interfaces.srv import GetParameters
 
     from exit_decision.ros.common import ProbeNode
-    from exit_decision.ros.launcher import start_node
+    from exit_decision.ros.stack.launcher import start_node
 
     process = start_node('decision_node', {'use_sim_time': True, 'modes': ['AGGI'],
                                            'algorithms': ['mdgqn_conditioned']}, tmp_path / 'decision.log')
@@ -259,7 +259,7 @@ def test_every_node_runs_on_the_bridges_clock(tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
 
     from exit_decision.ros.common import DIAGNOSTICS_TOPIC, STREAM_QOS, ProbeNode
-    from exit_decision.ros.launcher import run_stack
+    from exit_decision.ros.stack.launcher import run_stack
 
     from ros_helpers import random_policies, small_config_dir
 

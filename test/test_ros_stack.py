@@ -23,9 +23,9 @@ from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_
                                       GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode)
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, states_from_msg
-from exit_decision.ros.launcher import run_stack, start_node
+from exit_decision.ros.stack.launcher import run_stack, start_node
 from exit_decision.ros.bags.replay import replay_decisions
-from exit_decision.ros.stack_nodes import plan
+from exit_decision.ros.stack.node_table import plan
 from exit_decision import traffic
 from exit_decision.scenario.geometry import RoadGeometry
 
@@ -340,7 +340,7 @@ def test_the_recorders_memory_stays_flat_however_many_messages_it_records(setup,
     vehicles, about 1 KB each: 60 MB if it kept them), once its buffers are warm, its resident
     memory grows by less than 8 MB: room for its 1 MB chunk, its depth-1000 queue and the
     allocator's slack."""
-    from exit_decision.ros.bench import resident_mb
+    from exit_decision.ros.stack.bench import resident_mb
 
     bag = tmp_path / 'bag'
     recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
@@ -635,7 +635,7 @@ def test_a_bad_start_up_value_gives_one_line_and_exit_code_1(setup, tmp_path, no
 def may_run_realtime(priority: int) -> bool:
     """Can a process started from here take SCHED_FIFO at ``priority``? (Tried: root in a
     container may lack CAP_SYS_NICE.)"""
-    from exit_decision.ros.realtime import refusal
+    from exit_decision.ros.stack.realtime import refusal
     return refusal(priority) is None
 
 
@@ -654,7 +654,7 @@ def test_a_thread_priority_without_the_right_to_it_gives_one_line_and_a_failing_
     """The node (exit code 1), and the command line before it starts anything (usage error, 2)."""
     import subprocess
     import sys
-    from exit_decision.ros.launcher import executable, ros_args
+    from exit_decision.ros.stack.launcher import executable, ros_args
     prefix, drop_rights = without_realtime_rights()
     log = tmp_path / 'node.log'
     with open(log, 'w') as out:
@@ -956,8 +956,8 @@ def test_a_looped_bag_is_decided_again_and_the_player_answers_while_playing(setu
 def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
     """The benchmark command is what the speed targets are measured with: it runs and says
     what it measured (a short run; its figures are not judged here)."""
-    from exit_decision.ros.bench import bench_ros
-    from exit_decision.ros import cpu_affinity
+    from exit_decision.ros.stack.bench import bench_ros
+    from exit_decision.ros.stack import cpu_affinity
     before = os.sched_getaffinity(0)
     text = bench_ros('', '', 100, 0)
     assert os.sched_getaffinity(0) == before, 'the benchmark leaves its caller on the cores it had'
@@ -973,7 +973,7 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
         assert all(name in next(row for row in text.splitlines() if line in row) for name, _ in plan({})), text
     if split:   # every thread of every process where the split puts it, the observer with the onlookers
         import re
-        from exit_decision.ros.stack_nodes import NODES
+        from exit_decision.ros.stack.node_table import NODES
         row = next(row for row in text.splitlines() if 'cores of their threads' in row)
         printed = {name: [int(core) for core in cores.split(', ')] for name, cores in re.findall(r'(\w+) \[([\d, ]+)\]', row)}
         path, onlookers = split

@@ -239,7 +239,7 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.messages.conversions import states_to_msg
-    from exit_decision.ros.launcher import start_node
+    from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
 
     test = ProbeNode('visualizer_test')
@@ -266,7 +266,7 @@ def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.messages.conversions import states_to_msg
-    from exit_decision.ros.launcher import start_node
+    from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
 
     test = ProbeNode('visualizer_rate_test')
@@ -297,7 +297,7 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
 
     from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
     from exit_decision.ros.messages.conversions import states_to_msg
-    from exit_decision.ros.launcher import start_node
+    from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
     from test_ros_stack import diagnostics_of
 

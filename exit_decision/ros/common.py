@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from exit_decision.ros import cpu_affinity, realtime
+from exit_decision.ros.stack import cpu_affinity, realtime
 from exit_decision.ros.dds_defaults import apply_dds_defaults
 
 # DDS on loopback and our Fast DDS profile unless the user chose otherwise (dds_defaults), set
@@ -168,7 +168,7 @@ def declare_cpu_affinity(node: Node) -> list[int]:
     """Declare the read-only ``cpu_affinity`` of a node (default: every core the process may use
     at start, so ``ros2 param get`` tells where it runs) and pin every thread of the process to
     those cores: its own, the middleware's, and those it starts later. The stack gives the
-    decision path and the onlookers cores of their own (``cpu_split``; ``ros/cpu_affinity.py``
+    decision path and the onlookers cores of their own (``cpu_split``; ``ros/stack/cpu_affinity.py``
     says why)."""
     cores = declare(node, 'cpu_affinity', cpu_affinity.AT_START, describe(
         cpu_affinity.DESCRIPTION, read_only=True,

@@ -165,7 +165,7 @@ def record_fixture(fixture: Path, log_dir: Path) -> str:
     recording FIXTURE_TOPICS, check that the replay reproduces the new bag, and only then put
     it in place of ``fixture``'s; returns what was recorded. UsageError when the run or the
     check fails (the old fixture is kept)."""
-    from exit_decision.ros.launcher import run_stack
+    from exit_decision.ros.stack.launcher import run_stack
 
     fixture.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix='replay_fixture_') as scratch:

@@ -8,7 +8,7 @@ neither topic, and the graph is published after the commands, for the recorder a
 visualizer. So a decision step's states are decoded and checked once, not twice, and the
 commands do not wait for the graph to be serialised, sent to another process and decoded
 there (docs/design.md, "ROS 2 -> Speed"). The stack starts this process
-(``stack_nodes.NODES``); the two executables stay for a decision node of one's own, or a
+(``node_table.NODES``); the two executables stay for a decision node of one's own, or a
 graph builder for one's own decision maker.
 
 Parameters given with ``--ros-args -p`` reach both nodes (each takes those it declares); a

@@ -19,7 +19,7 @@ import contextlib
 import os
 from collections.abc import Iterable, Iterator
 
-from exit_decision.ros.realtime import each_thread
+from exit_decision.ros.stack.realtime import each_thread
 
 DESCRIPTION = ('cores every thread of the process runs on, a list such as [0] (taskset); default: every core it may '
                'use at start')

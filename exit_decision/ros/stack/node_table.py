@@ -1,11 +1,11 @@
 """The stack's nodes in one table: the launch file (launch/exit_decision.launch.py) and
-`exit-decision stack` (ros/launcher.py) both start them from ``plan()``.
+`exit-decision stack` (ros/stack/launcher.py) both start them from ``plan()``.
 
 Free of rclpy and of `launch`, so the launch file, the launcher and the tests read the same
 rows on any machine. Each launch argument is passed, as the parameter of the same name, to the
 nodes that list it; an empty value leaves the node's own default. ``cpu_split`` is no node's
 parameter: it sets each node's ``cpu_affinity``, the decision path's cores or the onlookers'
-(``ros/cpu_affinity.py``). The bridge comes last and waits until every other node of the plan
+(``ros/stack/cpu_affinity.py``). The bridge comes last and waits until every other node of the plan
 that listens to the vehicle states is there.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from exit_decision.model.names import DEFAULT_ALGORITHM
-from exit_decision.ros import cpu_affinity, realtime
+from exit_decision.ros.stack import cpu_affinity, realtime
 
 BRIDGE = 'sumo_bridge'
 
@@ -118,7 +118,7 @@ def cores(given: Mapping[str, object]) -> tuple[list[int], list[int]] | None:
     cores this process may use; None when the nodes are not split (``cpu_split`` false, 1 core,
     or a real-time ``thread_priority``: on its share of the cores the synchronous path would
     keep them busy, and the kernel's reservation for their normal tasks would stop it for tens
-    of ms; ``ros/cpu_affinity.py``). The launcher's and the benchmark's own helper nodes are
+    of ms; ``ros/stack/cpu_affinity.py``). The launcher's and the benchmark's own helper nodes are
     onlookers too."""
     return _split(_texts(given))
 

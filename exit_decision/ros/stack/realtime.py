@@ -62,7 +62,7 @@ def reset() -> None:
 def refusal(priority: int) -> str | None:
     """Why a process started from here could not run at ``priority`` (None if it could): tried
     in a throwaway child, so this process keeps its scheduling."""
-    result = subprocess.run([sys.executable, '-c', f'from exit_decision.ros.realtime import apply; apply({priority})'],
+    result = subprocess.run([sys.executable, '-c', f'from exit_decision.ros.stack.realtime import apply; apply({priority})'],
                             capture_output=True, text=True, check=False)
     if result.returncode == 0:
         return None

@@ -10,7 +10,7 @@ from pathlib import Path
 
 def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_priority: int = 0,
               cpu_split: bool = True) -> str:
-    """The default stack (``stack_nodes.plan``: recorder and visualizer included), each row of
+    """The default stack (``node_table.plan``: recorder and visualizer included), each row of
     the table its own process, synchronous mode, episodes until stopped.
 
     The other processes and the bridge start first; once they are up the one with the decision
@@ -38,11 +38,11 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     from rcl_interfaces.srv import GetParameters
     from rclpy.serialization import deserialize_message
 
-    from exit_decision.ros import cpu_affinity, realtime
+    from exit_decision.ros.stack import cpu_affinity, realtime
     from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, STATES_TOPIC, STREAM_QOS,
                                           ProbeNode)
-    from exit_decision.ros.launcher import StackLauncher
-    from exit_decision.ros.stack_nodes import BRIDGE, cores, plan, process_of
+    from exit_decision.ros.stack.launcher import StackLauncher
+    from exit_decision.ros.stack.node_table import BRIDGE, cores, plan, process_of
     from exit_decision.step_gaps import episode_and_step
 
     # (episode, step) -> when the observer's middleware received it (its receive stamp, so the

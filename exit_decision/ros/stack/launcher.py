@@ -1,6 +1,6 @@
 """Start the whole stack as separate processes on a machine without `ros2 launch`.
 
-The nodes of the one table (``stack_nodes.plan``, which the launch file starts too), each the
+The nodes of the one table (``node_table.plan``, which the launch file starts too), each the
 executable `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with parameters as
 `--ros-args -p`; the bridge once the others are listening. Optionally switches the decision
 mode once mid-run through the decision node's standard set_parameters service (what `ros2
@@ -32,8 +32,8 @@ from rcl_interfaces.srv import SetParameters
 
 from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
 from exit_decision.ros.messages.conversions import metrics_from_event
-from exit_decision.ros.cpu_affinity import pinned
-from exit_decision.ros.stack_nodes import BRIDGE, cores, plan
+from exit_decision.ros.stack.cpu_affinity import pinned
+from exit_decision.ros.stack.node_table import BRIDGE, cores, plan
 from exit_decision.errors import StackError
 from exit_decision.input_checks import InputError
 from exit_decision.step_gaps import episode_and_step
