@@ -398,18 +398,29 @@ def cmd_compare(args: argparse.Namespace) -> int:
         runs, budgeted, budget = load_comparison_training(args.training or config_dir / 'comparison.yaml',
                                                           load_project(args.config_dir, overrides=args.override), methods)
         training_mode = runs[0].mode
-        trainings = run_trainings(runs, budgeted, args.out, args.address, args.workers, args.retries)
-        trained = {run.name: run.directory(args.out) / 'policy.pt' for run in runs if run.done(args.out, budgeted)}
+        if args.report_only:   # the runs whose logs the results hold; no checkpoint read
+            trained = {run.name: None for run in runs if run.logged(args.out)}
+        else:
+            trainings = run_trainings(runs, budgeted, args.policies, args.out, args.address, args.workers,
+                                      args.retries)
+            trained = {run.name: run.directory(args.policies) / 'policy.pt' for run in runs
+                       if run.done(args.policies, budgeted)}
     drivers = args.method or (list(REFERENCE_DRIVERS) if methods else default_methods())
-    cells = plan_cells(drivers, configs, modes, trained)
+    cells = plan_cells(drivers, configs, modes, {} if args.report_only else trained)
     seeds = list(range(args.seed, args.seed + args.episodes))
-    result = run_sweep(cells, configs, seeds, args.out, args.address, args.workers, args.retries)
+    if not args.report_only:
+        result = run_sweep(cells, configs, seeds, args.out, args.address, args.workers, args.retries)
     learned = {method: [run.name for run in runs if run.method == method and run.name in trained] for method in methods}
+    # the page says the command that made its results: a rebuild from them says the same
+    command = args.invocation.replace(' --report-only', '') if args.report_only else args.invocation
     report = write_comparison(args.out, args.report or args.out / 'comparison.md', list(configs), learned,
                               sorted({cell.method for cell in cells if cell.method not in trained}),
                               modes, training_mode, base.scenario.max_steps,
-                              args.invocation, budget,
+                              command, budget,
                               [method for method in base.training.method_names if method not in methods])
+    if args.report_only:
+        print(f'the comparison, from the CSVs in {args.out}: {report}')
+        return 0
     if methods:
         print('training: ' + trainings.summary())
     print(result.summary())
@@ -735,6 +746,14 @@ def build_parser() -> argparse.ArgumentParser:
                               'scenario, with the seeds and budget of --training; finished runs are reused')
     compare.add_argument('--training', type=existing('file'), default=None,
                          help='default: <config dir>/comparison.yaml')
+    compare.add_argument('--policies', type=Path, default=Path('policies/comparison'),
+                         help='where each --train run trains and keeps its policy.pt (<policies>/<method>_s<seed>/, '
+                              'beside its config.json and timing.json), reused when done with the same settings; '
+                              'its logs are copied to <out>/training/ for the page (default: %(default)s, the runs '
+                              'of docs/comparison.md)')
+    compare.add_argument('--report-only', action='store_true',
+                         help='only write the page from the CSVs and training logs in --out (no training, no '
+                              'simulation, no checkpoint of a --train run read)')
     compare.add_argument('--report', type=Path, default=None,
                          help='the comparison page (figures beside it; default <out>/comparison.md)')
     compare.add_argument('--mode', action='append', default=[],

@@ -102,7 +102,7 @@ def test_evaluate_without_a_policy_or_driver_says_so_instead_of_an_empty_table(n
 
 
 #: options any text suits (where to write)
-FREE = {'--out', '--csv', '--markdown', '--report', '--address'}
+FREE = {'--out', '--csv', '--markdown', '--report', '--address', '--policies'}
 #: the options every command with _common() has, checked through run's rows (the one definition)
 COMMON = {'--config-dir', '--scenario-override', '--override'}
 

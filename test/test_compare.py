@@ -1,13 +1,14 @@
 """Scenario variants (config/variants.yaml) and the compare sweep on a local Ray."""
 import json
 import re
+import shutil
 
 import pytest
 import yaml
 
 from exit_decision.cli import main
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.experiments.compare import Job, SweepResult, load_variants, run_on_ray
+from exit_decision.experiments.compare import LOG_FILES, Job, SweepResult, load_variants, run_on_ray
 from exit_decision.scenario.sumo_inputs import network_sources, routes_source
 
 HUMANS = ('HV1', 'HV2', 'HV3')
@@ -97,12 +98,15 @@ def test_compare_trains_a_learned_method_on_a_budget_of_steps_and_reports_it_wit
         'episodes': 50, 'environment_steps': 100, 'warmup_decisions': 10, 'replay_size': 2000, 'batch_size': 8,
         'demonstrations': {'episodes': 1, 'pretrain_updates': 20},
         'validation': {'every_episodes': 2, 'episodes': 1, 'parallel': False}}}))
+    policies = tmp_path / 'policies'
     command = ['compare', '--variants', str(variants), '--override', str(override), '--train', 'dqn',
                '--training', str(training), '--mode', 'CONP', '--episodes', '2', '--out', str(out),
-               '--workers', '2', '--retries', '0']
+               '--policies', str(policies), '--workers', '2', '--retries', '0']
     assert main(command) == 0
     assert 'training: 1 training runs: 1 run now' in capsys.readouterr().out
-    assert (out / 'training' / 'dqn_s0' / 'policy.pt').is_file()
+    assert (policies / 'dqn_s0' / 'policy.pt').is_file()
+    assert not list(out.rglob('*.pt')), 'the results keep no checkpoint'
+    assert sorted(p.name for p in (out / 'training' / 'dqn_s0').iterdir()) == sorted(LOG_FILES)
     assert sorted(p.name for p in (out / 'tiny').glob('*_CONP.csv')) == ['dqn_s0_CONP.csv', 'rule_based_CONP.csv',
                                                                          'sumo_CONP.csv']
     page = (out / 'comparison.md').read_text()
@@ -114,6 +118,13 @@ def test_compare_trains_a_learned_method_on_a_budget_of_steps_and_reports_it_wit
     assert (out / 'comparison_learning_curves.png').stat().st_size > 0
     assert main(command) == 0, 'a rerun reuses the trained run and the done cells'
     assert 'training: 1 training runs: 0 run now, 1 already done' in capsys.readouterr().out
+
+    # the page again from the CSVs and logs alone: no checkpoint, no training, no simulation
+    shutil.rmtree(policies)
+    (out / 'comparison.md').unlink()
+    assert main([*command, '--report-only']) == 0
+    assert not policies.exists()
+    assert (out / 'comparison.md').read_text() == page, 'the same page, made by the same command'
 
 
 def _episodes(**columns):

@@ -11,6 +11,11 @@ simulations. Results are written by the driver as each cell finishes, as
 ``<out>/<variant>/<run>.csv`` (the files of ``evaluate``); a cell whose files all exist (with
 the same seeds) is skipped, a failed one is retried by Ray and, if it still fails, reported without losing the
 others.
+
+A learned method's training run is kept outside the results, in ``<policies>/<run>/`` (its
+policy.pt beside the config.json and timing.json that tell it done; ``policies/comparison`` by
+default), and reused when done; the logs the page reads (``LOG_FILES``) are copied to
+``<out>/training/<run>/``, so the page is rebuilt from ``<out>`` alone, without a checkpoint.
 """
 from __future__ import annotations
 
@@ -253,22 +258,43 @@ class TrainingRun:
     def name(self) -> str:
         return f'{self.method}_s{self.seed}'
 
-    def directory(self, out_dir: Path) -> Path:
+    def directory(self, policies_dir: Path) -> Path:
+        """Where the run trains and keeps its policy.pt (with its last.pt and candidates, ignored by git)."""
+        return policies_dir / self.name
+
+    def log_directory(self, out_dir: Path) -> Path:
+        """Where the results keep the run's logs (LOG_FILES), which the page reads."""
         return out_dir / 'training' / self.name
 
-    def done(self, out_dir: Path, config: ProjectConfig) -> bool:
-        """Finished (timing.json is the trainer's last file: an interrupted run has none) with
-        the settings this method depends on (another budget or setting: train again)."""
-        directory = self.directory(out_dir)
-        if not ((directory / 'timing.json').is_file() and (directory / 'policy.pt').is_file()):
-            return False
-        recorded = json.loads((directory / 'config.json').read_text())
-        try:
-            then = ProjectConfig.model_validate(recorded['config'])
-            return (recorded['episodes'], run_settings(then, self.method)) == (
-                config.training.episodes, run_settings(config, self.method))
-        except (ValidationError, ConfigError):   # a config of another release, or without this method
-            return False
+    def done(self, policies_dir: Path, config: ProjectConfig) -> bool:
+        """Trained, its policy.pt kept, with the settings this method depends on (another budget
+        or setting: train again)."""
+        directory = self.directory(policies_dir)
+        return (directory / 'policy.pt').is_file() and finished(directory, config, self.method)
+
+    def logged(self, out_dir: Path) -> bool:
+        """The results hold the logs of a finished run (timing.json, the trainer's last file): the
+        page rebuilt from them counts it, whatever config it was trained under (no checkpoint
+        read; its CSVs are the results of that run)."""
+        return (self.log_directory(out_dir) / 'timing.json').is_file()
+
+
+#: a training run's files the comparison page reads (copied beside the results, small)
+LOG_FILES = ('config.json', 'timing.json', 'training.csv', 'validation.csv')
+
+
+def finished(directory: Path, config: ProjectConfig, method: str) -> bool:
+    """A run directory of a finished training (timing.json is the trainer's last file: an
+    interrupted run has none) with the settings ``method`` depends on under ``config``."""
+    if not ((directory / 'timing.json').is_file() and (directory / 'config.json').is_file()):
+        return False
+    recorded = json.loads((directory / 'config.json').read_text())
+    try:
+        then = ProjectConfig.model_validate(recorded['config'])
+        return (recorded['episodes'], run_settings(then, method)) == (
+            config.training.episodes, run_settings(config, method))
+    except (ValidationError, ConfigError, KeyError):   # a config of another release, or without this method
+        return False
 
 
 def run_settings(config: ProjectConfig, method: str) -> dict:
@@ -309,13 +335,29 @@ def run_training(run: TrainingRun, config: ProjectConfig, directory: Path) -> st
     return str(Trainer(config, run.method, run.mode, run.seed, directory).run(config.training.episodes, progress=False))
 
 
-def run_trainings(runs: Sequence[TrainingRun], config: ProjectConfig, out_dir: Path, address: str | None = None,
-                  workers: int | None = None, retries: int = 2, progress: bool = True) -> SweepResult:
-    """Train every run not done yet, one Ray task each (a rerun skips finished runs)."""
-    pending = [run for run in runs if not run.done(out_dir, config)]
+def publish_logs(run: TrainingRun, policies_dir: Path, out_dir: Path) -> None:
+    """Copy the run's logs the page reads from its training directory to the results."""
+    target = run.log_directory(out_dir)
+    target.mkdir(parents=True, exist_ok=True)
+    for name in LOG_FILES:
+        if (run.directory(policies_dir) / name).is_file():
+            shutil.copyfile(run.directory(policies_dir) / name, target / name)
+
+
+def run_trainings(runs: Sequence[TrainingRun], config: ProjectConfig, policies_dir: Path, out_dir: Path,
+                  address: str | None = None, workers: int | None = None, retries: int = 2,
+                  progress: bool = True) -> SweepResult:
+    """Train every run not done yet in ``policies_dir``, one Ray task each (a rerun reuses
+    finished runs); every done run's logs are copied to ``out_dir``."""
+    pending = [run for run in runs if not run.done(policies_dir, config)]
     result = SweepResult(cells=len(runs), skipped=len(runs) - len(pending), unit='training runs')
-    jobs = [Job(run.name, run_training, (run, config, run.directory(out_dir)), lambda _: None) for run in pending]
-    return run_on_ray(jobs, result, address, workers, retries, progress)
+    jobs = [Job(run.name, run_training, (run, config, run.directory(policies_dir)), lambda _: None)
+            for run in pending]
+    run_on_ray(jobs, result, address, workers, retries, progress)
+    for run in runs:
+        if run.done(policies_dir, config):
+            publish_logs(run, policies_dir, out_dir)
+    return result
 
 
 def default_methods() -> list[str]:
