@@ -14,7 +14,7 @@ STAMPS="$VENV/.exit_decision_stamps"
 PY="$VENV/bin/python"
 
 # Logs stay out of ~/.ros. (DDS stays on loopback unless the user sets ROS_AUTOMATIC_DISCOVERY_RANGE:
-# exit_decision/ros/common.py, the one place, sets the default for every process and node.)
+# exit_decision/ros/dds_defaults.py, the one place, sets the default for every process and node.)
 export ROS_LOG_DIR="${ROS_LOG_DIR:-$ROOT/.ros_log}"
 unset _ROS_WHEELS_BOOTSTRAP_COMPLETE
 

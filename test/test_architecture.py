@@ -66,12 +66,12 @@ def test_imports_follow_the_direction(module, path):
 
 
 def test_the_rules_catch_what_they_forbid(tmp_path):
-    assert violations('exit_decision.env', {'exit_decision.ros.common'}) == ['core -> ros: exit_decision.ros.common']
+    assert violations('exit_decision.env', {'exit_decision.ros.topics'}) == ['core -> ros: exit_decision.ros.topics']
     assert violations('exit_decision.model.policy', {'exit_decision.learning.trainer'})
     assert violations('exit_decision.learning.trainer', {'exit_decision.cli'})
     assert violations('exit_decision.benchmarks', {'rclpy.node'})
     assert not violations('exit_decision.ros.nodes.decision_node', {'rclpy.node', 'exit_decision.model.policy'})
     assert not violations('exit_decision.learning.trainer', {'exit_decision.model.networks'})
     nested = tmp_path / 'nested.py'
-    nested.write_text('def f():\n    if True:\n        from exit_decision.ros import common\n')
-    assert 'exit_decision.ros.common' in imported(nested), 'an import inside a function is read too'
+    nested.write_text('def f():\n    if True:\n        from exit_decision.ros import topics\n')
+    assert 'exit_decision.ros.topics' in imported(nested), 'an import inside a function is read too'

@@ -18,7 +18,7 @@ from rosbags.rosbag2 import Reader
 
 from exit_decision.cli import main
 from exit_decision.ros.bags.storage import COMPRESSIONS, open_writer, read_messages, typestore
-from exit_decision.ros.common import COMMANDS_TOPIC
+from exit_decision.ros.topics import COMMANDS_TOPIC
 
 TESTS = Path(__file__).resolve().parent
 FIXTURE = TESTS / 'fixtures' / 'replay_bag'

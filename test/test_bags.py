@@ -14,7 +14,7 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from exit_decision.cli import main
 from exit_decision.ros.bags.repair import repair_bag
 from exit_decision.ros.bags.storage import BagError, read_messages, typestore
-from exit_decision.ros.common import COMMANDS_TOPIC, STATES_TOPIC
+from exit_decision.ros.topics import COMMANDS_TOPIC, STATES_TOPIC
 from exit_decision.step_gaps import StepGaps, episode_and_step
 
 

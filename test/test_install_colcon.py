@@ -167,8 +167,9 @@ def test_every_node_starts_from_the_install(install, bare_python, environment, t
     from rosbags.rosbag2 import Reader
     from visualization_msgs.msg import MarkerArray
 
-    from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, MARKERS_TOPIC, STATES_TOPIC,
-                                          STREAM_QOS, ProbeNode)
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, MARKERS_TOPIC, STATES_TOPIC,
+                                          STREAM_QOS)
 
     def start(name: str, parameters: dict) -> subprocess.Popen:
         return subprocess.Popen([str(bare_python), str(install / 'lib' / 'exit_decision' / name),

@@ -5,7 +5,7 @@ import pytest
 from exit_decision_msgs import msg
 from rclpy.qos import ReliabilityPolicy
 
-from exit_decision.ros import common
+from exit_decision.ros import topics
 
 FIELDS = {
     'VehicleState': {'vehicle_id': 'string', 'vehicle_class': 'uint8', 'lane_index': 'int8', 'edge_id': 'string',
@@ -47,9 +47,9 @@ def test_every_message_keeps_its_fields_and_constants(name):
 
 
 def test_topic_names_stay_and_the_synchronous_loops_streams_stay_reliable():
-    assert (common.STATES_TOPIC, common.GRAPH_TOPIC, common.COMMANDS_TOPIC, common.EPISODE_TOPIC,
-            common.OVERRIDES_TOPIC, common.MARKERS_TOPIC) == (
+    assert (topics.STATES_TOPIC, topics.GRAPH_TOPIC, topics.COMMANDS_TOPIC, topics.EPISODE_TOPIC,
+            topics.OVERRIDES_TOPIC, topics.MARKERS_TOPIC) == (
         '/exit_decision/vehicle_states', '/exit_decision/traffic_graph', '/exit_decision/cav_commands',
         '/exit_decision/episode_events', '/exit_decision/shield_overrides', '/exit_decision/markers')
-    for qos in (common.STATES_QOS, common.GRAPH_QOS, common.COMMANDS_QOS, common.EVENT_QOS, common.RECORDER_QOS):
+    for qos in (topics.STATES_QOS, topics.GRAPH_QOS, topics.COMMANDS_QOS, topics.EVENT_QOS, topics.RECORDER_QOS):
         assert qos.reliability == ReliabilityPolicy.RELIABLE

@@ -163,7 +163,7 @@ LAUNCHER_CHILD = '''
 import os, time
 from pathlib import Path
 from exit_decision.ros.stack.launcher import start_node
-from exit_decision.ros.common import ProbeNode
+from exit_decision.ros.probe import ProbeNode
 probe = ProbeNode('loopback_probe')   # the launcher's helper node: created in this same process
 child = start_node('graph_builder', {}, Path(os.devnull))
 environ = b''
@@ -210,21 +210,26 @@ def test_the_ros2_launch_process_keeps_dds_on_loopback_before_any_node_and_a_use
 
 
 def test_every_entry_point_takes_the_default_from_one_place():
-    """Every console script and the launcher import ``common`` (which sets the default), and
-    ``common`` is the only module that starts rclpy."""
+    """Every console script imports ``executor`` (``run_node``; importing it sets the default),
+    the launcher imports ``probe`` (its helper node), which imports ``executor``, and these two
+    are the only modules that start rclpy."""
     import ast
     starters = set()
     for path in (REPO / 'exit_decision').rglob('*.py'):
         if 'rclpy.init(' in path.read_text():
             starters.add(path.relative_to(REPO).as_posix())
-    assert starters == {'exit_decision/ros/common.py'}
-    for module in [f'nodes/{node.executable}' for node in NODES] + ['nodes/graph_builder', 'nodes/decision_node',
-                                                                     'nodes/player', 'stack/launcher']:
+    assert starters == {'exit_decision/ros/executor.py', 'exit_decision/ros/probe.py'}
+    executables = [f'nodes/{node.executable}' for node in NODES] + ['nodes/graph_builder', 'nodes/decision_node',
+                                                                   'nodes/player']
+    expected = ([(module, 'exit_decision.ros.executor') for module in executables]
+                + [('stack/launcher', 'exit_decision.ros.probe'), ('probe', 'exit_decision.ros.executor')])
+    for module, sets_default in expected:
         tree = ast.parse((REPO / 'exit_decision' / 'ros' / f'{module}.py').read_text())
         imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
-        assert 'exit_decision.ros.common' in imported, module
-    code = 'import os, exit_decision.ros.common; print(os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"])'
-    assert python(code) == 'LOCALHOST'
+        assert sets_default in imported, module
+    for module in ('executor', 'probe'):
+        code = f'import os, exit_decision.ros.{module}; print(os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"])'
+        assert python(code) == 'LOCALHOST'
 
 
 # --- use_sim_time --------------------------------------------------------------------------------
@@ -232,7 +237,7 @@ def test_every_entry_point_takes_the_default_from_one_place():
 def test_sigterm_stops_a_decision_node_on_sim_time_with_no_clock(tmp_path):
     from rcl_interfaces.srv import GetParameters
 
-    from exit_decision.ros.common import ProbeNode
+    from exit_decision.ros.probe import ProbeNode
     from exit_decision.ros.stack.launcher import start_node
 
     process = start_node('decision_node', {'use_sim_time': True, 'modes': ['AGGI'],
@@ -258,7 +263,8 @@ def test_every_node_runs_on_the_bridges_clock(tmp_path):
     simulation time (seconds since the episode's start, not since 1970)."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from exit_decision.ros.common import DIAGNOSTICS_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import DIAGNOSTICS_TOPIC, STREAM_QOS
     from exit_decision.ros.stack.launcher import run_stack
 
     from ros_helpers import random_policies, small_config_dir

@@ -10,7 +10,7 @@ from exit_decision.config import load_project
 from exit_decision.errors import PolicyError
 from exit_decision.model.names import default_policy_dir, policy_path
 from exit_decision.ros.bags.storage import read_messages
-from exit_decision.ros.common import COMMANDS_TOPIC
+from exit_decision.ros.topics import COMMANDS_TOPIC
 from exit_decision.ros.bags.replay import check_fixture, replay_decisions
 
 FIXTURE = Path(__file__).parent / 'fixtures' / 'replay_bag'

@@ -19,8 +19,9 @@ from rosbags.rosbag2 import Reader
 from exit_decision.config import load_project
 from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags.storage import read_messages
-from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
-                                      GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS, ProbeNode)
+from exit_decision.ros.probe import ProbeNode
+from exit_decision.ros.topics import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
+                                      GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS)
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.stack.launcher import run_stack, start_node
@@ -446,7 +447,7 @@ def test_player_republishes_a_bag_with_its_clock(tmp_path):
     from rosgraph_msgs.msg import Clock
 
     from exit_decision.ros.bags.storage import typestore
-    from exit_decision.ros.common import CLOCK_QOS, CLOCK_TOPIC
+    from exit_decision.ros.topics import CLOCK_QOS, CLOCK_TOPIC
     from exit_decision.ros.messages.conversions import stamp_of
 
     bag = tmp_path / 'bag'
@@ -982,7 +983,7 @@ def test_bench_ros_prints_speed_latency_cpu_and_memory_of_the_default_stack():
 
 
 def test_the_waiter_serves_what_is_ready_and_follows_entities_made_and_destroyed():
-    """The nodes' wait (common.Waiter) keeps its wait set between passes: a subscription's queue,
+    """The nodes' wait (executor.Waiter) keeps its wait set between passes: a subscription's queue,
     a triggered guard condition, a timer; one entity destroyed and another made (the same
     counts), then one more (other counts): each pass waits on what the node has then. rclpy's
     executor, which the Waiter calls for timers and services, is held off until the timer, so

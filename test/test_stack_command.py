@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from exit_decision.ros.bags.storage import read_messages
-from exit_decision.ros.common import STATES_TOPIC
+from exit_decision.ros.topics import STATES_TOPIC
 
 from ros_helpers import random_policies, small_config_dir
 

@@ -122,7 +122,7 @@ def write_fixture_bag(path, layout, lane_shift=0):
 
     from exit_decision.graph import TrafficGraph
     from exit_decision.ros.bags.storage import DEFAULT_TOPICS, typestore
-    from exit_decision.ros.common import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+    from exit_decision.ros.topics import COMMANDS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
     from exit_decision.ros.messages.conversions import commands_to_msg, graph_to_msg, stamp_of, states_to_msg
 
     store = typestore()
@@ -220,7 +220,7 @@ def first_markers(test, publisher, arrays) -> int:
     arrives; the last step sent."""
     from exit_decision_msgs.msg import EpisodeEvent
 
-    from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS
+    from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS
     from exit_decision.ros.messages.conversions import states_to_msg
 
     events = test.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
@@ -237,7 +237,8 @@ def test_visualizer_node_publishes_the_scene_on_the_markers_topic(tmp_path):
     from exit_decision_msgs.msg import VehicleStateArray
     from visualization_msgs.msg import Marker, MarkerArray
 
-    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
     from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
@@ -264,7 +265,8 @@ def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
     from exit_decision_msgs.msg import VehicleStateArray
     from visualization_msgs.msg import MarkerArray
 
-    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
     from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
@@ -295,7 +297,8 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
     from exit_decision_msgs.msg import VehicleStateArray
     from visualization_msgs.msg import MarkerArray
 
-    from exit_decision.ros.common import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
     from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
@@ -385,7 +388,7 @@ def write_events_and_overrides(path, layout, p_collision):
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from exit_decision.ros.bags.storage import DEFAULT_TOPICS, typestore
-    from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
+    from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
     from exit_decision.ros.messages.conversions import (commands_to_msg, episode_event_to_msg, overrides_to_msg,
                                                         stamp_of, states_to_msg)
     from exit_decision.shield_overrides import ShieldOverride

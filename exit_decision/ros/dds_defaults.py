@@ -1,6 +1,6 @@
 """The middleware settings every process of the project starts DDS with, unless the user set
 them: free of rclpy, so they apply before a participant exists, in the nodes (through
-``ros/common.py``), the launcher's and the benchmark's helper nodes, and the `ros2 launch`
+``ros/executor.py``), the launcher's and the benchmark's helper nodes, and the `ros2 launch`
 process itself (the launch file), whose children inherit them.
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: DDS stays on this machine.

@@ -35,7 +35,7 @@ from exit_decision.model.modes import ModeWeights
 from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, planned, policy_path
 from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.ros.bags.storage import BagError, read_messages
-from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.ros.messages.conversions import commands_from_msg, graph_from_msg, states_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from exit_decision.config import ProjectConfig
 from exit_decision.errors import UsageError
 from exit_decision.ros.bags.storage import BagError, open_bag, read_messages
-from exit_decision.ros.common import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
+from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC
 from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, graph_from_msg, overrides_from_msg,
                                                     states_from_msg)
 from exit_decision.scenario.geometry import RoadGeometry

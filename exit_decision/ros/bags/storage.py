@@ -27,7 +27,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderEr
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC,
+from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC,
                                       EVENT_QOS, GRAPH_TOPIC, MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
 
 #: what the recorder records by default, with the types

@@ -54,9 +54,12 @@ from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS, TrafficGraph
 from exit_decision.model.modes import CUSTOM_MODE, ModeWeights, check_weights
 from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned, planned_policies
-from exit_decision.ros.common import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
-                                      OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, Diagnostics, declare, declare_config,
-                                      declare_cpu_affinity, declare_thread_priority, describe, run_node)
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import run_node
+from exit_decision.ros.parameters import (declare, declare_config, declare_cpu_affinity, declare_thread_priority,
+                                          describe)
+from exit_decision.ros.topics import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
+                                      OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC)
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, overrides_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
@@ -197,7 +200,7 @@ class DecisionNode(Node):
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         if not self.composed:
             # events first: when an episode's start and its first messages are both waiting, the
-            # node's wait (common.Waiter) empties the queue of the subscription created first first
+            # node's wait (executor.Waiter) empties the queue of the subscription created first first
             self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
             self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
             self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)

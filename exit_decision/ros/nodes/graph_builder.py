@@ -21,9 +21,10 @@ from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.node import Node
 
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
-from exit_decision.ros.common import (EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC,
-                                      Diagnostics, declare_config, declare_cpu_affinity, declare_thread_priority,
-                                      run_node)
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import run_node
+from exit_decision.ros.parameters import declare_config, declare_cpu_affinity, declare_thread_priority
+from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC
 from exit_decision.ros.messages.conversions import graph_to_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.input_checks import StateLimits, StepGate
@@ -65,7 +66,7 @@ class GraphBuilderNode(Node):
 
     def subscribe(self) -> None:
         # events first: when an episode's start and its first states are both waiting, the
-        # node's wait (common.Waiter) empties the queue of the subscription created first first
+        # node's wait (executor.Waiter) empties the queue of the subscription created first first
         self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
 

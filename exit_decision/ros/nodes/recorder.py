@@ -35,9 +35,11 @@ from rosbags.rosbag2 import Writer, WriterError
 
 from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_TOPICS, message_class, open_writer,
                                             topic_qos, typestore)
-from exit_decision.ros.common import (COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC, Diagnostics,
-                                      ParameterError, check_choice, declare, declare_config, declare_cpu_affinity,
-                                      describe, run_node)
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import run_node
+from exit_decision.ros.parameters import (ParameterError, check_choice, declare, declare_config, declare_cpu_affinity,
+                                          describe)
+from exit_decision.ros.topics import COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC
 from exit_decision.step_gaps import StepGaps
 
 FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only

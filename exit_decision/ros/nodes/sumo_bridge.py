@@ -35,10 +35,12 @@ from rclpy.executors import SingleThreadedExecutor
 from rosgraph_msgs.msg import Clock
 
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.ros.common import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
-                                      STATES_QOS, STATES_TOPIC, Diagnostics, check_choice, declare, Waiter,
-                                      declare_config, declare_cpu_affinity, declare_thread_priority, describe, follow,
-                                      run_node, take_waiting)
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import Waiter, run_node, take_waiting
+from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
+                                          declare_thread_priority, describe, follow)
+from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
+                                      STATES_QOS, STATES_TOPIC)
 from exit_decision.ros.messages.commands_cdr import decode_commands
 from exit_decision.ros.messages.conversions import episode_event_to_msg, stamp_of
 from exit_decision.ros.messages.states_cdr import encode_states

@@ -33,9 +33,11 @@ from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
 from exit_decision.input_checks import StateLimits, StepGate
-from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS, Diagnostics, declare,
-                                      declare_config, declare_cpu_affinity, describe, follow, run_node)
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import run_node
+from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
+from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
+                                      MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
 from exit_decision.ros.messages.conversions import MessageError, commands_from_msg, graph_from_msg, overrides_from_msg
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
@@ -94,7 +96,7 @@ class Visualizer(Node):
         self.markers: dict = {}   # Marker messages reused frame to frame (marker_array)
         self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
         # events first: when an episode's start and its first states are both waiting, the
-        # node's wait (common.Waiter) empties the queue of the subscription created first first
+        # node's wait (executor.Waiter) empties the queue of the subscription created first first
         self.events = self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
         self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS, raw=True)

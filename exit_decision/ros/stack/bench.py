@@ -39,8 +39,8 @@ def bench_ros(config_dir: str, policy_dir: str, steps: int, seed: int, thread_pr
     from rclpy.serialization import deserialize_message
 
     from exit_decision.ros.stack import cpu_affinity, realtime
-    from exit_decision.ros.common import (COMMANDS_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, STATES_TOPIC, STREAM_QOS,
-                                          ProbeNode)
+    from exit_decision.ros.probe import ProbeNode
+    from exit_decision.ros.topics import COMMANDS_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, STATES_TOPIC, STREAM_QOS
     from exit_decision.ros.stack.launcher import StackLauncher
     from exit_decision.ros.stack.node_table import BRIDGE, cores, plan, process_of
     from exit_decision.step_gaps import episode_and_step

@@ -6,7 +6,7 @@ executable `ros2 run exit_decision <exe>` starts (lib/exit_decision/<exe>), with
 mode once mid-run through the decision node's standard set_parameters service (what `ros2
 param set` calls). When the bridge has run its episodes, the others get SIGINT (SIGKILL if
 they hang), and the episode metrics (from the episode events) and the bag path are returned.
-Every process inherits the loopback default that importing ``common`` sets.
+Every process inherits the loopback default that importing ``probe`` (through ``executor``) sets.
 
 The nodes run in sessions of their own (a Ctrl-C in the terminal reaches only the launcher),
 so the launcher stops them whatever ends the run: the bridge's last episode; SIGINT (Ctrl-C)
@@ -30,7 +30,8 @@ from pathlib import Path
 from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
 
-from exit_decision.ros.common import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS, ProbeNode
+from exit_decision.ros.probe import ProbeNode
+from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
 from exit_decision.ros.messages.conversions import metrics_from_event
 from exit_decision.ros.stack.cpu_affinity import pinned
 from exit_decision.ros.stack.node_table import BRIDGE, cores, plan

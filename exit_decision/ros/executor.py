@@ -1,0 +1,196 @@
+"""How a process runs its nodes: the lean wait on their entities (``Waiter``), spin, and ``run_node``, the main."""
+from __future__ import annotations
+
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+from exit_decision.ros.dds_defaults import apply_dds_defaults
+
+# DDS on loopback and our Fast DDS profile unless the user chose otherwise (dds_defaults), set
+# before rclpy starts, in the module every node (run_node) and the helper node of the launcher,
+# the benchmark and the tests (probe.ProbeNode, through Waiter) import; every process they
+# start inherits it.
+apply_dds_defaults()
+
+import rclpy  # noqa: E402
+from rclpy.exceptions import InvalidHandle  # noqa: E402
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.signals import SignalHandlerOptions  # noqa: E402
+from rclpy.subscription import Subscription  # noqa: E402
+
+from exit_decision.config import ConfigError  # noqa: E402
+from exit_decision.errors import PolicyError  # noqa: E402
+from exit_decision.ros.parameters import ParameterError  # noqa: E402
+
+
+def take_waiting(subscription, limit: int | None = None) -> int:
+    """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
+    its callback now, without the executor, and say how many (a flood on the topic costs each
+    message its decoding, or its header read, and the check that refuses it)."""
+    with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
+    taken = 0
+    try:
+        with subscription.handle:
+            while limit is None or taken < limit:
+                message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                if message is None:
+                    break
+                subscription.callback(*(message if with_info else message[:1]))
+                taken += 1
+    except InvalidHandle:   # destroyed (by an earlier callback of this pass)
+        pass
+    return taken
+
+
+def _release(handles) -> None:
+    """Exit every entered entity handle, each even when one before it raises (the first error
+    is raised after all), as an ExitStack would."""
+    error = None
+    for handle in handles:
+        try:
+            handle.__exit__(None, None, None)
+        except Exception as failed:  # noqa: BLE001 (re-raised below, after the others are released)
+            error = error or failed
+    if error is not None:
+        raise error
+
+
+class Waiter:
+    """The wait of a process's nodes (one, or several composed in one process), lean: one wait
+    set on their subscriptions, services, clients, timers and guard conditions. Each
+    subscription that is ready hands over its queue at once, up to its QoS depth a pass
+    (``take_waiting``), in the order the nodes (given in order) created them (a node that
+    subscribes to the episode events first sees an episode's start before its messages); a
+    guard condition's callback runs here (the wait takes its trigger). rclpy's executor
+    (``spin_once(0)``) serves the rest: services, clients and timers when they are ready, and
+    its own work (tasks of futures, QoS event handlers) at least every ``EXECUTOR_PERIOD``.
+
+    rclpy's executor builds its wait set again, and walks every entity of the node (two QoS
+    event handlers per publisher and subscription) in Python, for every single message it
+    hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step.
+    One thread spins a Waiter (it keeps its wait set between passes)."""
+
+    EXECUTOR_PERIOD = 0.5   # [s]
+    #: the node attributes listing what a wait set holds, in the order ``_rclpy.WaitSet`` counts them
+    KINDS = ('subscriptions', 'guards', 'timers', 'clients', 'services')
+
+    def __init__(self, nodes: Sequence[Node], executor: SingleThreadedExecutor):
+        self.nodes, self.executor = tuple(nodes), executor
+        self.executor_passed = time.monotonic()
+        self.wait_set, self.wait_set_counts = None, None
+
+    def spin_once(self, timeout_sec: float) -> None:
+        """Wait up to ``timeout_sec`` and serve what is ready. Lean because every message of a
+        node costs one: the wait set is kept and refilled while the number of entities stays
+        (its creation was a fifth of a pass), and the entities are held as rclpy's executor
+        holds them (no entity destroyed while waited on), without an ExitStack (a pass cost
+        100 us of CPU here, 160 us inside the stack, for every states message of a step)."""
+        entities = [[item for node in self.nodes for item in getattr(node, kind)] for kind in self.KINDS]
+        held = []
+        try:
+            for items in entities:
+                kept = []
+                for item in items:
+                    try:
+                        item.handle.__enter__()
+                    except InvalidHandle:
+                        continue
+                    held.append(item.handle)
+                    kept.append(item)
+                items[:] = kept
+            subscriptions, guards, timers, clients, services = entities
+            counts = tuple(map(len, entities))
+            if counts != self.wait_set_counts:
+                self.wait_set = _rclpy.WaitSet(*counts, 0, self.nodes[0].context.handle)   # no events
+                self.wait_set_counts = counts
+            wait_set = self.wait_set
+            wait_set.clear_entities()
+            for items, add in zip(entities, (wait_set.add_subscription, wait_set.add_guard_condition,
+                                             wait_set.add_timer, wait_set.add_client, wait_set.add_service)):
+                for item in items:
+                    add(item.handle)
+            wait_set.wait(int(timeout_sec * 1e9))
+            ready_subscriptions = set(wait_set.get_ready_entities('subscription'))
+            ready_guards = set(wait_set.get_ready_entities('guard_condition')) if guards else ()
+            others_ready = any(wait_set.get_ready_entities(kind) for kind, items in
+                               (('timer', timers), ('client', clients), ('service', services)) if items)
+            taken = [item for item in subscriptions if item.handle.pointer in ready_subscriptions]
+            triggered = [guard for guard in guards if guard.callback is not None and guard.handle.pointer in ready_guards]
+        finally:
+            _release(held)
+        for subscription in taken:
+            take_waiting(subscription, subscription.qos_profile.depth or None)   # keep-all: depth 0
+        for guard in triggered:
+            guard.callback()
+        now = time.monotonic()
+        if others_ready or not taken or now - self.executor_passed >= self.EXECUTOR_PERIOD:
+            self.executor_passed = now
+            self.executor.spin_once(timeout_sec=0.0)
+
+    def keep_serving(self) -> None:
+        """For a loop that may not wait for a while (a realtime bridge behind its schedule): a
+        pass without waiting if the executor has had none for ``EXECUTOR_PERIOD``, so services
+        (``ros2 param set``) are still answered."""
+        if time.monotonic() - self.executor_passed >= self.EXECUTOR_PERIOD:
+            self.spin_once(0.0)
+
+
+_STOP_SIGNALS: list[int] = []   # SIGINT/SIGTERM received by this process
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    _STOP_SIGNALS.append(signum)
+    raise KeyboardInterrupt
+
+
+def spin(nodes: Sequence[Node]) -> None:
+    """``rclpy.spin`` of a process's nodes, lean (``Waiter``), that wakes at least twice a second,
+    so Ctrl-C or SIGTERM stops them even when nothing else would wake them (under use_sim_time
+    with no /clock no timer ever fires)."""
+    executor = SingleThreadedExecutor(context=nodes[0].context)
+    for node in nodes:
+        executor.add_node(node)
+    waiter = Waiter(nodes, executor)
+    while nodes[0].context.ok():
+        waiter.spin_once(0.5)
+
+
+def run_node(name: str, make_node: Callable[[], Node | Sequence[Node]],
+             run: Callable[[Node], None] | None = None) -> int:
+    """Standard main: init, make the node (or the nodes composed in this process, in the order
+    their subscriptions are served), spin (or ``run`` the one node), clean shutdown on
+    Ctrl-C/SIGTERM.
+
+    A node that cannot start (bad config, missing or corrupt policy) says why and exits with 1."""
+    # KeyboardInterrupt on SIGINT and SIGTERM (ours, noting the signal), instead of rclpy's, which
+    # would invalidate the context before the node's clean-up (the recorder closing its bag).
+    rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
+    nodes: Sequence[Node] = ()
+    try:
+        made = make_node()
+        nodes = [made] if isinstance(made, Node) else list(made)
+        if run is not None:
+            run(*nodes)
+        else:
+            spin(nodes)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ConfigError, PolicyError, ParameterError) as error:   # before RuntimeError: PolicyError is one
+        print(f'[{name}] cannot start: {error}', file=sys.stderr)
+        return 1
+    except RuntimeError:
+        # a KeyboardInterrupt raised while rclpy's C++ converts a message comes out as
+        # "RuntimeError: Unable to convert call argument": a stop all the same
+        if not _STOP_SIGNALS:
+            raise
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

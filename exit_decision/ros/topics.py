@@ -1,0 +1,49 @@
+"""The topic names and the QoS each one is published and subscribed with.
+
+QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
+- vehicle_states, traffic_graph, cav_commands: reliable (in synchronous mode every message
+  of a step matters: a lost command stalls the bridge until its timeout), keep last 1000 on
+  both sides in the stack's nodes (``STATES_QOS``, ``GRAPH_QOS``, ``COMMANDS_QOS``). A
+  publisher's 1000 is its resend history: a reader that falls behind (a recorder sharing 2
+  cores with training: with 10 it lost 30% of the states) catches up without losses. A
+  node's 1000 absorbs a stall (the decision node's first policy call; a node left without
+  CPU for a while on 2 busy cores, during a flood of 1000 msg/s on its topic) without losing
+  the messages of its own stream among the flood. A deep queue does not make answers late
+  because a node empties its stream queues at once (``take_waiting``, no executor pass per
+  message) and refuses what cannot follow its episode and step from the message's header,
+  before decoding it: some 10 us a refused message. Before that, rclpy's executor (0.35 ms
+  a message) and its throttled logging (0.37 ms a rejected message) made a node slower than
+  a flood of 1000 msg/s, and keep-last, at any depth, dropped or delayed the states and
+  commands of the decision steps (56-85 command timeouts an episode). Observers (the
+  launcher, the visualizer, tests) take ``STREAM_QOS``, depth 100. Messages lost anyway are
+  counted (``dropped_<topic>``, from the publisher's sequence numbers, while a topic has one
+  publisher: rclpy does not say which of several publishers a message came from, and its
+  message_lost event does not see a reader's keep-last overflow), and the steps missing
+  between two a node took as ``skipped_*``.
+- the recorder subscribes with depth 1000: it must keep everything, and writing is cheap.
+- episode_events: reliable, transient local, depth 50: a late subscriber (the launcher, a
+  node restarted mid-episode, a recorder started later) still gets the episode that is
+  running (its EVENT_STARTED starts the node's sequence checks) and the metrics of recent ones.
+- /clock: best effort, keep last 1 (ROS 2's clock QoS): only the newest time matters.
+- /diagnostics: reliable, keep last 10, the /diagnostics convention (one status a second).
+"""
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+STATES_TOPIC = '/exit_decision/vehicle_states'
+GRAPH_TOPIC = '/exit_decision/traffic_graph'
+COMMANDS_TOPIC = '/exit_decision/cav_commands'
+EPISODE_TOPIC = '/exit_decision/episode_events'
+CLOCK_TOPIC = '/clock'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+MARKERS_TOPIC = '/exit_decision/markers'
+OVERRIDES_TOPIC = '/exit_decision/shield_overrides'
+
+STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
+#: what the stack's nodes publish and subscribe states, graph and commands with (see above)
+STATES_QOS = GRAPH_QOS = COMMANDS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                                                   history=HistoryPolicy.KEEP_LAST, depth=1000)
+DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10)
+RECORDER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=1000)
+EVENT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=50,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOCK_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=1)
