@@ -1,1 +1,1 @@
-"""ROS 2 glue: message conversion and (later) the nodes. The only package that imports rclpy."""
+"""ROS 2 glue, the only package that imports rclpy: nodes/, messages/, bags/, stack/ and the nodes' shared helpers."""
