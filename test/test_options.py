@@ -123,7 +123,7 @@ def test_a_constant_option_drives_a_whole_episode_to_the_target_exit(project_con
     """The env, the executor and the low level together: the neutral style on the route's lane
     plan, one real episode; the commands are off the grid."""
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import run_option_episode
+    from exit_decision.evaluation.evaluate import constant_option, run_option_episode
 
     env = ExitDecisionEnv(project_config)
     try:
@@ -138,7 +138,7 @@ def test_a_constant_option_drives_a_whole_episode_to_the_target_exit(project_con
             return result
 
         executor.commands = recorded
-        metrics = run_option_episode(env, executor, lambda vehicle, mask: space.index('route', 'neutral'), 10)
+        metrics = run_option_episode(env, executor, constant_option(space.index('route', 'neutral')), 10)
     finally:
         env.close()
     assert metrics['p_CAV'] == 1.0 and metrics['p_collision_CAV'] == 0.0

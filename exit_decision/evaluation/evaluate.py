@@ -80,15 +80,25 @@ def run_commands_episode(env: ExitDecisionEnv, commands_of: Callable[[ExitDecisi
     return env.episode_log.metrics()
 
 
+#: picks an option for a CAV whose option ended: (vehicle, its option mask) -> option index
+OptionChooser = Callable[[VehicleState, np.ndarray], int]
+
+
+def constant_option(index: int) -> Callable[[ExitDecisionEnv], OptionChooser]:
+    """``run_option_episode``'s chooser of a constant option (a fixed driver of the low level)."""
+    return lambda env: lambda vehicle, mask: index
+
+
 def run_option_episode(env: ExitDecisionEnv, executor: OptionExecutor,
-                       chooser: Callable[[VehicleState, np.ndarray], int], seed: int) -> dict[str, float]:
-    """One episode with options: at every decision step each CAV whose option ended gets a new
-    one from ``chooser(vehicle, mask)``, and the held options become the CAVs' commands."""
+                       chooser_at: Callable[[ExitDecisionEnv], OptionChooser], seed: int) -> dict[str, float]:
+    """One episode with options: at every decision step ``chooser_at(env)`` gives the chooser of
+    that decision (a policy's Q values are computed once per decision), each CAV whose option
+    ended gets a new one from it, and the held options become the CAVs' commands."""
     executor.reset()
 
     def commands_of(env: ExitDecisionEnv) -> dict:
         snapshot, cav_ids = env.sim.snapshot, env.graph.cav_ids()
-        executor.choose(snapshot, cav_ids, env.sim.state.time, chooser)
+        executor.choose(snapshot, cav_ids, env.sim.state.time, chooser_at(env))
         return executor.commands(snapshot, cav_ids)
 
     return run_commands_episode(env, commands_of, seed)
@@ -102,15 +112,8 @@ def run_option_policy(env: ExitDecisionEnv, controller: PolicyController, weight
     executor = OptionExecutor(OptionSpace(env.config, controller.shield, controller.planner))
     out = []
     for seed in tqdm(seeds, desc=desc, unit='ep', disable=desc is None):
-        executor.reset()
-
-        def commands_of(env: ExitDecisionEnv) -> dict:
-            graph, snapshot = env.graph, env.sim.snapshot
-            executor.choose(snapshot, graph.cav_ids(), env.sim.state.time,
-                            controller.option_chooser(graph, snapshot, weights))
-            return executor.commands(snapshot, graph.cav_ids())
-
-        metrics = run_commands_episode(env, commands_of, seed)
+        metrics = run_option_episode(
+            env, executor, lambda env: controller.option_chooser(env.graph, env.sim.snapshot, weights), seed)
         out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
     return out
 

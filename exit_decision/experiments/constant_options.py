@@ -36,8 +36,8 @@ def _episode(task: tuple) -> list[dict]:
     config, run, seed, variants, policy = task
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import (EvaluationResult, run_episode, run_episodes, run_option_episode,
-                                                   run_option_policy)
+    from exit_decision.evaluation.evaluate import (EvaluationResult, constant_option, run_episode, run_episodes,
+                                                   run_option_episode, run_option_policy)
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.policy import load_controller
 
@@ -57,7 +57,7 @@ def _episode(task: tuple) -> list[dict]:
         space = OptionSpace(config, env.shield, env.planner)
         constant = space.index('route', run.removeprefix('option_'))
         executor = OptionExecutor(space)
-        metrics = run_option_episode(env, executor, lambda vehicle, mask: constant, seed)
+        metrics = run_option_episode(env, executor, constant_option(constant), seed)
     return variant_rows(config, env, variants, {'run': run, 'seed': seed}, metrics)
 
 

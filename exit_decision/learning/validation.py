@@ -38,7 +38,7 @@ def _teacher_episodes(task: ValidationTask, env) -> dict[str, list[dict]]:
     (the constant option, one style on the route's lane plan, of highest mean return)."""
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import run_episodes, run_option_episode, scored_episodes
+    from exit_decision.evaluation.evaluate import constant_option, run_episodes, run_option_episode, scored_episodes
 
     if task.action_space == 'grid':
         episodes = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
@@ -48,7 +48,7 @@ def _teacher_episodes(task: ValidationTask, env) -> dict[str, list[dict]]:
     by_style = {}
     for style in task.config.env.options.styles:
         constant = space.index('route', style)
-        by_style[style] = [{'seed': seed, **run_option_episode(env, executor, lambda v, m: constant, seed),
+        by_style[style] = [{'seed': seed, **run_option_episode(env, executor, constant_option(constant), seed),
                             'reward_vector': env.episode_log.reward_vector.copy()} for seed in task.seeds]
 
     def mean_return(episodes, mode):
