@@ -27,19 +27,24 @@ def small_config_dir(target: Path) -> Path:
 
 
 def random_policies(config_dir: Path, target: Path, modes=('AGGI', 'AGGP', 'CONI', 'CONP')) -> Path:
-    """Small untrained policies for every (algorithm, mode) and a conditioned one: the wiring,
-    not the driving, is tested."""
+    """Small untrained policies for every (algorithm, mode), a conditioned one, and a
+    conditioned one over options: the wiring, not the driving, is tested."""
     config = load_project(config_dir)
     grid = ActionGrid(config.env.actions)
-    runs = [(a, m, f'{a}_{m}') for a in ('gqn', 'mdgqn') for m in modes] + [('mdgqn', 'conditioned', 'mdgqn_conditioned')]
+    options = config.env.options
+    runs = [(a, m, f'{a}_{m}') for a in ('gqn', 'mdgqn') for m in modes] + [
+        ('mdgqn', 'conditioned', 'mdgqn_conditioned'), ('mdgqn', 'conditioned', 'mdgqn_options_conditioned')]
     for index, (algorithm, mode, name) in enumerate(runs):
         torch.manual_seed(index)
-        network = GraphQNetwork(NetworkShape(len(FEATURE_SETS[config.graph.feature_set]), grid.size, 8, 8, 8,
+        over_options = '_options' in name
+        actions = len(options.lane_intents) * len(options.styles) if over_options else grid.size
+        network = GraphQNetwork(NetworkShape(len(FEATURE_SETS[config.graph.feature_set]), actions, 8, 8, 8,
                                              num_weights=6 if mode == 'conditioned' else 0))
         save_policy(target / name / 'policy.pt', network, {
             'algorithm': algorithm, 'mode': mode, 'num_nodes': config.graph.max_vehicles,
             'feature_set': config.graph.feature_set, 'decision_interval': config.env.decision_interval,
-            'action_grid': config.env.actions.model_dump()})
+            'action_grid': config.env.actions.model_dump(),
+            **({'action_space': 'options', 'options': options.model_dump()} if over_options else {})})
     return target
 
 

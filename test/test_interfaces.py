@@ -29,6 +29,11 @@ FIELDS = {
                        'applied_lane_change': 'int8', 'applied_acceleration': 'float'},
     'ShieldOverrideArray': {'header': 'std_msgs/Header', 'episode': 'uint32', 'step': 'uint32',
                             'overrides': 'sequence<exit_decision_msgs/ShieldOverride>'},
+    'CavOption': {'vehicle_id': 'string', 'lane_intent': 'string', 'style': 'string', 'index': 'uint16',
+                  'started': 'double'},
+    'CavOptionArray': {'header': 'std_msgs/Header', 'episode': 'uint32', 'step': 'uint32', 'mode': 'string',
+                       'algorithm': 'string', 'policy': 'string',
+                       'options': 'sequence<exit_decision_msgs/CavOption>'},
 }
 CONSTANTS = {
     'VehicleState': {'CLASS_HV1': 0, 'CLASS_HV2': 1, 'CLASS_HV3': 2, 'CLASS_CAV': 3,
@@ -48,8 +53,9 @@ def test_every_message_keeps_its_fields_and_constants(name):
 
 def test_topic_names_stay_and_the_synchronous_loops_streams_stay_reliable():
     assert (topics.STATES_TOPIC, topics.GRAPH_TOPIC, topics.COMMANDS_TOPIC, topics.EPISODE_TOPIC,
-            topics.OVERRIDES_TOPIC, topics.MARKERS_TOPIC) == (
+            topics.OVERRIDES_TOPIC, topics.MARKERS_TOPIC, topics.OPTIONS_TOPIC) == (
         '/exit_decision/vehicle_states', '/exit_decision/traffic_graph', '/exit_decision/cav_commands',
-        '/exit_decision/episode_events', '/exit_decision/shield_overrides', '/exit_decision/markers')
+        '/exit_decision/episode_events', '/exit_decision/shield_overrides', '/exit_decision/markers',
+        '/exit_decision/cav_options')
     for qos in (topics.STATES_QOS, topics.GRAPH_QOS, topics.COMMANDS_QOS, topics.EVENT_QOS, topics.RECORDER_QOS):
         assert qos.reliability == ReliabilityPolicy.RELIABLE

@@ -21,7 +21,7 @@ from exit_decision.graph import GraphBuilder
 from exit_decision.ros.bags.storage import read_messages
 from exit_decision.ros.probe import ProbeNode
 from exit_decision.ros.topics import (COMMANDS_QOS, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
-                                      GRAPH_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS)
+                                      GRAPH_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC, STREAM_QOS)
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, states_from_msg
 from exit_decision.ros.stack.launcher import run_stack, start_node
@@ -102,6 +102,36 @@ def test_stack_runs_switches_mode_records_and_replays(setup):
     assert other.matching < other.commands, 'the one conditioned network decides differently at another mode'
     per_mode = replay_decisions(bag, load_project(config_dir), policies, algorithm='mdgqn')
     assert per_mode.matching < per_mode.commands, 'a per-mode policy is another network'
+
+
+def test_a_policy_over_options_drives_publishes_its_options_ends_them_at_a_switch_and_replays(setup):
+    """The decision node runs a conditioned policy over options: every decision's options are
+    recorded beside its commands, a mode switch ends every option held, and the replay decides
+    the same commands and options again (issue 28)."""
+    root, config_dir, policies = setup['root'], setup['config_dir'], setup['policies']
+    bag = root / 'options_bag'
+    run = run_stack(mode='AGGP', algorithm='mdgqn_options_conditioned', episodes=1, seed=10_002, bag_path=bag,
+                    log_dir=root / 'options_logs', switch_to='CONP', switch_at_step=100, config_dir=str(config_dir),
+                    policy_dir=str(policies), timeout=300, visualizer=False)
+    assert run.mode_switch.endswith('accepted') and len(run.episodes) == 1, run.mode_switch
+    topics = {}
+    for topic, _, _, msg in read_messages(bag, {COMMANDS_TOPIC, OPTIONS_TOPIC}):
+        topics.setdefault(topic, []).append(msg)
+    commands = {m.step: m for m in topics[COMMANDS_TOPIC]}
+    options = {m.step: m for m in topics[OPTIONS_TOPIC]}
+    assert set(options) == set(commands) and any(m.options for m in options.values())
+    assert all({o.vehicle_id for o in options[s].options} == {c.vehicle_id for c in commands[s].commands}
+               for s in commands), 'every commanded CAV holds an option'
+    config = load_project(config_dir)
+    hold = config.env.options.hold_time
+    switched = min(s for s, m in commands.items() if m.mode == 'CONP')
+    assert all(o.started == switched * config.scenario.step_length for o in options[switched].options), \
+        'every option begins anew at the first decision after the switch'
+    held_on = [o for m in options.values() for o in m.options if m.step * config.scenario.step_length - o.started > 0]
+    assert held_on and all(m.step * config.scenario.step_length - o.started < hold + 1e-6
+                           for m in options.values() for o in m.options), 'options are held, at most hold_time'
+    report = replay_decisions(bag, config, policies)
+    assert report.reproduced and report.options == sum(len(m.options) for m in options.values()), report.summary(3)
 
 
 def test_the_stack_drives_with_another_method_as_published_and_the_replay_agrees(setup):

@@ -493,3 +493,16 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
     finally:
         env.close()
     assert counted > 0, 'the episode has overrides to find'
+
+
+def test_the_option_a_cav_holds_is_written_under_its_id_and_goes_with_it(layout):
+    from exit_decision.agents.options import CavOption, Option
+    vehicles = [dataclasses.replace(v, controlled=v.is_cav) for v in snapshot()]
+    frames = FrameBuilder(layout, STEP)
+    frames.decide({'CAV_0': CavCommand(0, 1.0), 'CAV_1': CavCommand(0, 0.0)}, mode='CONP')
+    frames.options({'CAV_0': CavOption(Option('route', 'calm'), 4, 0.0), 'CAV_1': CavOption(Option('left', 'close'), 6, 0.0)})
+    scene = MarkerScene(layout)
+    labels = sorted(m.text for m in scene.update(frames.add(0, vehicles)) if m.namespace == 'vehicle_ids')
+    assert labels == ['CAV_0\nroute calm', 'CAV_1\nleft close', 'HV1_0', 'HV2_0', 'HV3_0']
+    gone = frames.add(1, vehicles[1:])   # CAV_0 left the road
+    assert gone.options == {'CAV_1': 'left close'}

@@ -39,6 +39,15 @@ class Option:
 
 
 @dataclass(frozen=True, slots=True)
+class CavOption:
+    """What a CAV holds, as published and recorded (/exit_decision/cav_options): the option,
+    its index and when it began [s, simulation time]."""
+    option: Option
+    index: int
+    started: float
+
+
+@dataclass(frozen=True, slots=True)
 class HeldOption:
     index: int
     start_lane: int
@@ -119,6 +128,11 @@ class OptionExecutor:
             target = None if change is None else vehicle.lane_index + change
             self.held[vehicle_id] = HeldOption(index, vehicle.lane_index, target, time, self.space.planned(vehicle))
         return {vid: self.held[vid].index for vid in cav_ids}
+
+    def held_options(self) -> dict[str, CavOption]:
+        """The option each CAV holds now, as published."""
+        return {vid: CavOption(self.space.options[held.index], held.index, held.started)
+                for vid, held in self.held.items()}
 
     def commands(self, snapshot: TrafficSnapshot, cav_ids: Sequence[str]) -> dict[str, CavCommand]:
         """The held options' commands under the shield: the style's driver towards the option's

@@ -9,12 +9,13 @@ from typing import Protocol
 import numpy as np
 from tqdm import tqdm
 
-from exit_decision.agents.options import OptionExecutor, OptionSpace
+from exit_decision.agents.options import OptionExecutor
 from exit_decision.agents.shield import Decision
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights
+from exit_decision.model.driving import PolicyDriver
 from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.reward import scalar
 from exit_decision.shield_overrides import shield_overrides
@@ -106,14 +107,15 @@ def run_option_episode(env: ExitDecisionEnv, executor: OptionExecutor,
 
 def run_option_policy(env: ExitDecisionEnv, controller: PolicyController, weights: np.ndarray | None,
                       seeds: Sequence[int], desc: str | None = None) -> list[dict]:
-    """A policy over options on the seeds (``run_episodes``' rows): at each decision step the
-    CAVs whose option ended begin the allowed option of highest Q value."""
+    """A policy over options on the seeds (``run_episodes``' rows), driven as the decision node
+    and replay drive it (``model.driving.PolicyDriver``)."""
     controller.network_weights(weights)   # refused now, not at the first decision
-    executor = OptionExecutor(OptionSpace(env.config, controller.shield, controller.planner))
+    driver = PolicyDriver(controller, env.config)
     out = []
     for seed in tqdm(seeds, desc=desc, unit='ep', disable=desc is None):
-        metrics = run_option_episode(
-            env, executor, lambda env: controller.option_chooser(env.graph, env.sim.snapshot, weights), seed)
+        driver.reset()
+        metrics = run_commands_episode(
+            env, lambda env: driver.decide(env.graph, env.sim.snapshot, weights, env.sim.state.time).commands, seed)
         out.append({'seed': seed, **metrics, 'reward_vector': env.episode_log.reward_vector.copy()})
     return out
 

@@ -5,7 +5,8 @@ A learned method's run is ``<method>_<mode>`` (one policy per mode of config/mod
 ``<method>_conditioned`` (one mode-conditioned policy for every mode, and any weights); its
 checkpoint is ``<policy dir>/<run>/policy.pt``. An *algorithm*, as the decision node, replay
 and ``exit-decision stack`` take it, is ``<method>`` (its per-mode policies) or
-``<method>_conditioned``.
+``<method>_conditioned``. A method trained over options (``train --action-space options``)
+has ``_options`` after the method's name: ``mdgqn_options_conditioned``, ``gqn_options_AGGI``.
 """
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ CONDITIONED_SUFFIX = f'_{CONDITIONED}'
 DEFAULT_ALGORITHM = 'mdgqn_conditioned'
 #: the algorithms whose policies are shipped in policies/
 SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', DEFAULT_ALGORITHM)
+#: the action space of an algorithm whose method's name ends so (else: the 81-action grid)
+OPTIONS_SUFFIX = '_options'
 #: a planned policy: (algorithm, mode), mode None for a conditioned algorithm's one policy
 Planned = tuple[str, str | None]
 
@@ -30,8 +33,18 @@ def is_conditioned(algorithm: str) -> bool:
 
 
 def method_of(algorithm: str) -> str:
-    """The learned method of config/training.yaml an algorithm (or run name) is of."""
-    return algorithm.removesuffix(CONDITIONED_SUFFIX)
+    """The learned method of config/training.yaml an algorithm is of."""
+    return algorithm.removesuffix(CONDITIONED_SUFFIX).removesuffix(OPTIONS_SUFFIX)
+
+
+def action_space_of(algorithm: str) -> str:
+    """'options' for ``<method>_options[_conditioned]``, else 'grid'."""
+    return 'options' if algorithm.removesuffix(CONDITIONED_SUFFIX).endswith(OPTIONS_SUFFIX) else 'grid'
+
+
+def algorithm_name(method: str, action_space: str, conditioned: bool) -> str:
+    """The algorithm (and run name stem) of a method trained over ``action_space``."""
+    return method + (OPTIONS_SUFFIX if action_space == 'options' else '') + (CONDITIONED_SUFFIX if conditioned else '')
 
 
 def planned(algorithm: str, mode: str | None) -> Planned:

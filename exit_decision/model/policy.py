@@ -31,7 +31,7 @@ from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights, same_weights
-from exit_decision.model.names import Planned, is_conditioned, policy_path
+from exit_decision.model.names import Planned, action_space_of, is_conditioned, policy_path
 from exit_decision.model.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -245,6 +245,9 @@ def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, pla
             raise PolicyError(f'{policy.path}: a mode-conditioned policy; algorithm {algorithm!r} needs one per mode'
                               if policy.conditioned else
                               f'{policy.path}: not a mode-conditioned policy, as algorithm {algorithm!r} needs')
+        if policy.action_space != action_space_of(algorithm):
+            raise PolicyError(f'{policy.path}: a policy over {policy.action_space}; algorithm {algorithm!r} needs one '
+                              f'over {action_space_of(algorithm)} (a method over options has _options in its name)')
         if mode is not None and policy.mode != mode:
             raise PolicyError(f'{policy.path}: a policy of mode {policy.mode!r}; algorithm {algorithm!r} at mode '
                               f'{mode!r} needs one of that mode')
@@ -254,5 +257,7 @@ def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, pla
 def load_controllers(config: ProjectConfig, policy_dir: Path, planned: Iterable[Planned], shield: Shield,
                      planner: LanePlanner | None = None) -> dict[Planned, PolicyController]:
     """The policies of ``planned`` (``names.planned_policies``) from ``policy_dir``
-    (``names.policy_path``), each loaded and checked by ``load_controller``."""
-    return {key: load_controller(config, policy_path(policy_dir, *key), shield, planner, key) for key in planned}
+    (``names.policy_path``), each loaded and checked by ``load_controller``, on the grid or
+    over options as the algorithm's name says."""
+    return {key: load_controller(config, policy_path(policy_dir, *key), shield, planner, key, ACTION_SPACES)
+            for key in planned}

@@ -37,6 +37,8 @@ CLOCK_TOPIC = '/clock'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 MARKERS_TOPIC = '/exit_decision/markers'
 OVERRIDES_TOPIC = '/exit_decision/shield_overrides'
+#: the option each policy CAV holds, per decision step (a policy over options only)
+OPTIONS_TOPIC = '/exit_decision/cav_options'
 
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
 #: what the stack's nodes publish and subscribe states, graph and commands with (see above)

@@ -111,7 +111,7 @@ class MarkerScene:
                                       colour=rgba(CLASS_COLOURS[vehicle.vehicle_class])))
             markers.append(MarkerSpec('vehicle_ids', marker_id, 'TEXT_VIEW_FACING',
                                       position=(pose.x, pose.y, VEHICLE_HEIGHT + 1.5), scale=(0.0, 0.0, 1.5),
-                                      colour=TEXT_COLOUR, text=vehicle.vehicle_id))
+                                      colour=TEXT_COLOUR, text=self.vehicle_label(frame, vehicle.vehicle_id)))
             command = frame.commands.get(vehicle.vehicle_id)
             if command is not None:
                 markers.append(self.command_arrow(marker_id, vehicle.length, pose, command.lane_change,
@@ -125,6 +125,12 @@ class MarkerScene:
         markers += self.collision_markers(frame)
         markers.append(self.status_text(frame))
         return markers
+
+    @staticmethod
+    def vehicle_label(frame: Frame, vehicle_id: str) -> str:
+        """The id, and under it the option the CAV holds (a policy over options)."""
+        option = frame.options.get(vehicle_id)
+        return vehicle_id if option is None else f'{vehicle_id}\n{option}'
 
     def command_arrow(self, marker_id: int, length: float, pose, lane_change: int, acceleration: float) -> MarkerSpec:
         front_x = pose.x + math.cos(pose.yaw) * length / 2

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from exit_decision.agents.options import CavOption
 from exit_decision.shield_overrides import ShieldOverride
 from exit_decision.traffic import CavCommand, VehicleState
 from exit_decision.visualization.layout import RoadLayout
@@ -37,6 +38,7 @@ class Frame:
     overridden: Mapping[str, ShieldOverride] = field(default_factory=dict)      # held commands the shield chose
     new_overrides: Mapping[str, ShieldOverride] = field(default_factory=dict)   # arrived since the previous frame
     collisions: int | None = None                 # the bridge's count, on a frame after the episode's end
+    options: Mapping[str, str] = field(default_factory=dict)   # a policy over options: each CAV's, 'intent style'
 
 
 @dataclass
@@ -66,6 +68,7 @@ class FrameBuilder:
         self.mode = ''
         self.step = -1
         self.held: dict[str, CavCommand] = {}
+        self.held_options: dict[str, str] = {}
         self.decided_at: dict[str, int] = {}                          # vehicle id -> step of its last command
         self.overridden: dict[str, tuple[int, ShieldOverride]] = {}   # vehicle id -> (step, override)
         self.new_overrides: dict[str, ShieldOverride] = {}
@@ -92,6 +95,10 @@ class FrameBuilder:
             if step >= self.decided_at.get(vehicle_id, step):
                 self.overridden[vehicle_id] = (step, override)
                 self.new_overrides[vehicle_id] = override
+
+    def options(self, options: Mapping[str, CavOption]) -> None:
+        """The options the CAVs hold at the newest decision (a policy over options)."""
+        self.held_options.update({vid: f'{o.option.lane_intent} {o.option.style}' for vid, o in options.items()})
 
     def end(self, p_collision: float) -> int | None:
         """The bridge's collision count of the episode from its end event (collisions per CAV),
@@ -126,9 +133,11 @@ class FrameBuilder:
         commanded = {v.vehicle_id for v in vehicles if v.controlled}   # a released CAV takes no more commands
         self.held = {k: c for k, c in self.held.items() if k in commanded}
         self.overridden = {k: o for k, o in self.overridden.items() if k in commanded}
+        self.held_options = {k: o for k, o in self.held_options.items() if k in commanded}
         frame = Frame(self.episode, step, step * self.step_length, list(vehicles), dict(self.held), self.mode,
                       crashed, [e for e in self.edges if e[0] in present and e[1] in present], overrides,
-                      {k: o for k, (_, o) in self.overridden.items()}, self.new_overrides)
+                      {k: o for k, (_, o) in self.overridden.items()}, self.new_overrides,
+                      options=dict(self.held_options))
         self.new_overrides = {}
         self.step = step
         self.previous = {v.vehicle_id: v for v in vehicles}

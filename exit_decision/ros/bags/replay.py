@@ -4,6 +4,10 @@ For every recorded command array, the policy (the recorded one, another mode, or
 checkpoint) decides again, for the recorded or given mode (a per-mode checkpoint refuses
 another mode's), on the graph and states of the same step, under the shield; the
 report counts the CAV commands that match the recorded ones and lists where they differ.
+A policy over options decides the episode's steps in order, as the node did
+(``model.driving.PolicyDriver``: options held from step to step, all ended at an episode's
+start and where the recorded mode or policy changes), and the options it holds are compared
+with the recorded ones (/exit_decision/cav_options) too.
 With ``rebuild_graph`` the graphs are not the recorded ones but those the current graph
 builder makes from the recorded states (as the graph_builder node does: each episode from its
 first step), so a change to the graph module shows too.
@@ -33,10 +37,11 @@ from exit_decision.errors import UsageError
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError, TrafficGraph
 from exit_decision.model.modes import ModeWeights
 from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, planned, policy_path
-from exit_decision.model.policy import PolicyController, load_controller
+from exit_decision.model.driving import PolicyDriver
+from exit_decision.model.policy import ACTION_SPACES, load_controller
 from exit_decision.ros.bags.storage import BagError, read_messages
-from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
-from exit_decision.ros.messages.conversions import commands_from_msg, graph_from_msg, states_from_msg
+from exit_decision.ros.messages.conversions import commands_from_msg, graph_from_msg, options_from_msg, states_from_msg
+from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, OPTIONS_TOPIC, STATES_TOPIC
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot
 
@@ -48,19 +53,22 @@ class ReplayReport:
     matching: int = 0
     missing_inputs: int = 0       # command arrays whose graph or states are not in the bag
     custom_weights: int = 0       # decided at custom reward_weights, which the bag does not hold
+    options: int = 0              # recorded options of CAVs compared (a policy over options)
+    matching_options: int = 0
     differences: list[str] = field(default_factory=list)
 
     @property
     def reproduced(self) -> bool:
         """Every recorded command decided again, and the same."""
         return self.commands > 0 and self.matching == self.commands and not self.missing_inputs \
-            and not self.custom_weights
+            and not self.custom_weights and self.matching_options == self.options
 
     def summary(self, limit: int = 20) -> str:
         share = self.matching / self.commands if self.commands else float('nan')
         lines = [f'{self.decisions} decisions, {self.commands} CAV commands: {self.matching} match '
                  f'({share:.1%}); {self.missing_inputs} decisions without recorded inputs'
-                 + (f', {self.custom_weights} at custom reward_weights (not replayable)' if self.custom_weights else '')]
+                 + (f', {self.custom_weights} at custom reward_weights (not replayable)' if self.custom_weights else '')
+                 + (f'; {self.options} CAV options: {self.matching_options} match' if self.options else '')]
         lines += [f'  {d}' for d in self.differences[:limit]]
         if len(self.differences) > limit:
             lines.append(f'  ... and {len(self.differences) - limit} more differences')
@@ -94,10 +102,11 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
                      algorithm: str | None = None, policy_file: Path | None = None,
                      rebuild_graph: bool = False) -> ReplayReport:
     """BagError if the bag cannot be read or holds no recorded commands."""
-    graph_msgs, states, recorded = {}, {}, []
-    for topic, _, _, msg in read_messages(bag, {STATES_TOPIC, COMMANDS_TOPIC} | (set() if rebuild_graph else {GRAPH_TOPIC})):
+    graph_msgs, states, options, recorded = {}, {}, {}, []
+    topics = {STATES_TOPIC, COMMANDS_TOPIC, OPTIONS_TOPIC} | (set() if rebuild_graph else {GRAPH_TOPIC})
+    for topic, _, _, msg in read_messages(bag, topics):
         key = (msg.episode, msg.step)
-        {GRAPH_TOPIC: graph_msgs, STATES_TOPIC: states}.get(topic, {})[key] = msg
+        {GRAPH_TOPIC: graph_msgs, STATES_TOPIC: states, OPTIONS_TOPIC: options}.get(topic, {})[key] = msg
         if topic == COMMANDS_TOPIC:
             recorded.append(msg)
     if not recorded:
@@ -106,12 +115,11 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
     wanted = {(msg.episode, msg.step) for msg in recorded}
     graphs = rebuilt_graphs(config, states, wanted) if rebuild_graph else \
         {key: graph_from_msg(msg) for key, msg in graph_msgs.items() if key in wanted}
-    grid = ActionGrid(config.env.actions)
-    shield = Shield.of(config, grid, RoadGeometry.of(config.scenario.road))
+    shield = Shield.of(config, ActionGrid(config.env.actions), RoadGeometry.of(config.scenario.road))
     planner = LanePlanner.of(config, shield)
     modes = ModeWeights(config)
-    controllers: dict[Path | tuple, PolicyController] = {}   # by policy file, or by planned (algorithm, mode)
-    report = ReplayReport()
+    drivers: dict[Path | tuple, PolicyDriver] = {}   # by policy file, or by planned (algorithm, mode)
+    report, last = ReplayReport(), None   # last: (episode, policy, mode) of the decision before
     for msg in recorded:
         key = (msg.episode, msg.step)
         if key not in graphs or key not in states:
@@ -122,22 +130,37 @@ def replay_decisions(bag: Path, config: ProjectConfig, policy_dir: Path, mode: s
             report.custom_weights += 1   # decided at reward_weights off the modes: not in the bag
             continue
         which = policy_file or planned(name, mode_name)
-        if which not in controllers:
-            controllers[which] = (load_controller(config, policy_file, shield, planner) if policy_file else
-                                  load_controller(config, policy_path(policy_dir, *which), shield, planner, which))
+        if which not in drivers:
+            controller = load_controller(config, policy_file or policy_path(policy_dir, *which), shield, planner,
+                                         None if policy_file else which, ACTION_SPACES)
+            drivers[which] = PolicyDriver(controller, config)
+        if last != (msg.episode, which, mode_name):   # as the node: options end at a start or a switch
+            drivers[which].reset()
+            last = (msg.episode, which, mode_name)
         vehicles = states_from_msg(states[key], config.scenario.road.names.sections)
-        decision = controllers[which].decide(graphs[key], TrafficSnapshot(vehicles), modes.weights(mode_name))
+        decision = drivers[which].decide(graphs[key], TrafficSnapshot(vehicles), modes.weights(mode_name),
+                                         key[1] * config.scenario.step_length)
         report.decisions += 1
+        where = f'episode {key[0]} step {key[1]}'
         for vehicle_id, command in commands_from_msg(msg).items():
             report.commands += 1
-            again = grid.command(decision.actions[vehicle_id]) if vehicle_id in decision.actions else None
+            again = decision.commands.get(vehicle_id)
             if again is not None and again.lane_change == command.lane_change and np.isclose(
-                    again.acceleration, command.acceleration, atol=1e-4):
+                    np.float32(again.acceleration), command.acceleration, atol=1e-4):
                 report.matching += 1
             else:
-                report.differences.append(f'episode {key[0]} step {key[1]} {vehicle_id} ({name} {mode_name}): recorded '
+                report.differences.append(f'{where} {vehicle_id} ({name} {mode_name}): recorded '
                                           f'({command.lane_change:+d}, {command.acceleration:g}), replayed '
                                           f'{"none" if again is None else f"({again.lane_change:+d}, {again.acceleration:g})"}')
+        if decision.options is not None and key in options:
+            for vehicle_id, held in options_from_msg(options[key]).items():
+                report.options += 1
+                again = decision.options.get(vehicle_id)
+                if again is not None and again.index == held.index:
+                    report.matching_options += 1
+                else:
+                    report.differences.append(f'{where} {vehicle_id}: recorded option {held.option}, replayed '
+                                              f'{"none" if again is None else again.option}')
     return report
 
 
@@ -149,7 +172,7 @@ FIXTURE_OVERRIDE = {'scenario': {'max_steps': 400}}
 FIXTURE_RUN = {'mode': 'AGGP', 'switch_to': 'CONP', 'switch_at_step': 200, 'algorithm': DEFAULT_ALGORITHM,
                'episodes': 1, 'seed': 10_000}
 #: what replay needs (it builds the graphs again; the graph topic would add ~9 KB a step)
-FIXTURE_TOPICS = (STATES_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC)
+FIXTURE_TOPICS = (STATES_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC, OPTIONS_TOPIC)
 
 
 def check_fixture(fixture: Path, policy_dir: Path | None = None,

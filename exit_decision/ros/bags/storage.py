@@ -28,7 +28,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC,
-                                      EVENT_QOS, GRAPH_TOPIC, MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
+                                      EVENT_QOS, GRAPH_TOPIC, MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC,
+                                      STATES_TOPIC, STREAM_QOS)
 
 #: what the recorder records by default, with the types
 DEFAULT_TOPICS = {
@@ -37,6 +38,7 @@ DEFAULT_TOPICS = {
     COMMANDS_TOPIC: 'exit_decision_msgs/msg/CavCommandArray',
     EPISODE_TOPIC: 'exit_decision_msgs/msg/EpisodeEvent',
     OVERRIDES_TOPIC: 'exit_decision_msgs/msg/ShieldOverrideArray',   # the CAVs the shield overrode, per decision
+    OPTIONS_TOPIC: 'exit_decision_msgs/msg/CavOptionArray',   # the options policy CAVs hold, per decision
     CLOCK_TOPIC: 'rosgraph_msgs/msg/Clock',
     '/parameter_events': 'rcl_interfaces/msg/ParameterEvent',
     MARKERS_TOPIC: 'visualization_msgs/msg/MarkerArray',   # the visualizer's scene: a bag opens in Foxglove/RViz

@@ -12,10 +12,12 @@ from collections.abc import Callable, Collection, Container, Iterable, Mapping, 
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, EpisodeEvent, ShieldOverride as
-                                    ShieldOverrideMsg, ShieldOverrideArray, TrafficGraph as GraphMsg,
-                                    VehicleState as VehicleStateMsg, VehicleStateArray)
+from exit_decision_msgs.msg import (CavCommand as CavCommandMsg, CavCommandArray, CavOption as CavOptionMsg,
+                                    CavOptionArray, EpisodeEvent, ShieldOverride as ShieldOverrideMsg,
+                                    ShieldOverrideArray, TrafficGraph as GraphMsg, VehicleState as VehicleStateMsg,
+                                    VehicleStateArray)
 
+from exit_decision.agents.options import CavOption, Option
 from exit_decision.graph import TrafficGraph
 from exit_decision.traffic import VEHICLE_CLASSES, CavCommand, VehicleState
 from exit_decision.input_checks import InputError
@@ -191,6 +193,21 @@ def overrides_from_msg(msg: ShieldOverrideArray) -> dict[str, ShieldOverride]:
     return _by_vehicle(msg.overrides, 'shield overrides', lambda o: (o.preferred_acceleration, o.applied_acceleration),
                        lambda o: ShieldOverride(CavCommand(int(o.preferred_lane_change), float(o.preferred_acceleration)),
                                                 CavCommand(int(o.applied_lane_change), float(o.applied_acceleration))))
+
+
+def options_to_msg(options: Mapping[str, CavOption], *, episode: int, step: int, stamp: Time, mode: str,
+                   algorithm: str, policy: str) -> CavOptionArray:
+    msg = CavOptionArray(episode=episode, step=step, mode=mode, algorithm=algorithm, policy=policy, options=[
+        CavOptionMsg(vehicle_id=vid, lane_intent=held.option.lane_intent, style=held.option.style, index=held.index,
+                     started=held.started) for vid, held in options.items()])
+    msg.header.stamp = stamp
+    msg.header.frame_id = 'road'
+    return msg
+
+
+def options_from_msg(msg: CavOptionArray) -> dict[str, CavOption]:
+    return _by_vehicle(msg.options, 'options', lambda o: (o.started,),
+                       lambda o: CavOption(Option(o.lane_intent, o.style), int(o.index), float(o.started)))
 
 
 def episode_event_to_msg(event: int, *, episode: int, seed: int, steps: int, time: float,

@@ -1,7 +1,7 @@
 """visualizer: the scene as ``visualization_msgs/MarkerArray`` on /exit_decision/markers (frame ``map``).
 
 Thin glue around ``exit_decision.visualization``: vehicle states, the graph, the commands
-(with their mode), the CAVs the shield overrode, the decision node's shield-override counter
+(with their mode), the options CAVs hold (a policy over options), the CAVs the shield overrode, the decision node's shield-override counter
 (/diagnostics) and the bridge's episode events go into a ``FrameBuilder``; ``MarkerScene``
 says what to draw and what to delete. At most ``max_rate`` arrays per wall-clock second (a
 synchronous stack steps much faster than anyone watches): frames in between still count for
@@ -25,8 +25,8 @@ import time
 from collections.abc import Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray
-from exit_decision_msgs.msg import (CavCommandArray, EpisodeEvent, ShieldOverrideArray, TrafficGraph,
-                                    VehicleStateArray)
+from exit_decision_msgs.msg import (CavCommandArray, CavOptionArray, EpisodeEvent, ShieldOverrideArray,
+                                    TrafficGraph, VehicleStateArray)
 from geometry_msgs.msg import Point
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -37,8 +37,9 @@ from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      MARKERS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
-from exit_decision.ros.messages.conversions import MessageError, commands_from_msg, graph_from_msg, overrides_from_msg
+                                      MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
+from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, graph_from_msg, options_from_msg,
+                                                    overrides_from_msg)
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.markers import FRAME_ID, MarkerScene, MarkerSpec
@@ -104,6 +105,7 @@ class Visualizer(Node):
         self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
         self.create_subscription(ShieldOverrideArray, OVERRIDES_TOPIC, self.on_overrides, STREAM_QOS)
+        self.create_subscription(CavOptionArray, OPTIONS_TOPIC, self.on_options, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, raw: bytes) -> None:
@@ -164,6 +166,14 @@ class Visualizer(Node):
             self.frames.shield(overrides_from_msg(msg), msg.step)
         except MessageError as error:
             self.diagnostics.reject('shield_overrides', f'shield overrides of step {msg.step}', str(error))
+
+    def on_options(self, msg: CavOptionArray) -> None:
+        if msg.episode != self.frames.episode:
+            return
+        try:
+            self.frames.options(options_from_msg(msg))
+        except MessageError as error:
+            self.diagnostics.reject('options', f'options of step {msg.step}', str(error))
 
     def on_commands(self, msg: CavCommandArray) -> None:
         if msg.episode != self.frames.episode:
