@@ -9,6 +9,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from exit_decision.config import ProjectConfig, default_config_dir, load_project
+from exit_decision.errors import PolicyError
+from exit_decision.model.modes import CUSTOM_MODE, ModeWeights
+from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies
+from exit_decision.model.selection import PolicySelection
 from exit_decision.ros.stack import cpu_affinity, realtime
 
 
@@ -117,3 +121,35 @@ def declare_config(node: Node) -> ProjectConfig:
         'directory with the YAML config; empty: the installed share/exit_decision/config',
         read_only=True))
     return load_project(Path(value) if value else default_config_dir())
+
+
+def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, list[str], PolicySelection]:
+    """The decision node's policy parameters (policy_dir, modes, algorithm, algorithms, mode,
+    reward_weights): the policy directory, the modes of per-mode policies and the selection of the
+    start values (PolicyError, in one line, for values no policy can drive with)."""
+    policy_dir = Path(declare(node, 'policy_dir', '', describe(
+        'directory with <algorithm>[_<mode>]/policy.pt; empty: the shipped policies', read_only=True))
+        or default_policy_dir())
+    modes = list(declare(node, 'modes', config.mode_matrix.modes, describe(
+        'modes whose per-mode policies are loaded at start', read_only=True))) or [None]
+    algorithm = declare(node, 'algorithm', '', describe(
+        'a learned method of config/training.yaml, _options after it for one over options, _conditioned at '
+        'the end for one policy of every mode; one of parameter algorithms; empty at start: the last of them',
+        constraints='an algorithm of parameter algorithms'))
+    shipped = not algorithm or algorithm in SHIPPED_ALGORITHMS
+    algorithms = list(declare(node, 'algorithms', list(SHIPPED_ALGORITHMS) if shipped else [algorithm], describe(
+        f'algorithms whose policies are loaded at start; default: the shipped ones ({", ".join(SHIPPED_ALGORITHMS)}), '
+        'or only the start algorithm if it is another', read_only=True))) or [None]
+    if None in (algorithms[0], modes[0]):
+        raise PolicyError('parameters algorithms and modes: give at least one of each')
+    mode = declare(node, 'mode', modes[0], describe('decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
+    start = ModeWeights(config).weights(mode if mode in config.modes else modes[0])
+    weights = declare(node, 'reward_weights', start.tolist(), describe(
+        'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
+        '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode'))
+    selection = PolicySelection(config, planned_policies(algorithms, modes), algorithm or algorithms[-1], mode,
+                                weights)
+    for name in ('algorithm', 'mode'):   # the start values the selection settled on
+        if getattr(selection, name) != node.get_parameter(name).value:
+            node.set_parameters([Parameter(name, Parameter.Type.STRING, getattr(selection, name))])
+    return policy_dir, modes, selection

@@ -1,11 +1,8 @@
 """decision_node: the trained policy of the active mode drives every CAV.
 
-It loads, for each name of parameter ``algorithms``, ``<algorithm>_conditioned``'s one
-mode-conditioned checkpoint (every mode, any ``reward_weights``) or ``<algorithm>``'s one per
-mode of parameter ``modes`` (``model.names``); ``_options`` in the name: a policy over options.
-A missing, corrupt or incompatible file stops the node at start, naming the path. Policies load
-(torch included, ~2 s) in a thread: the parameter services answer meanwhile, and the node
-subscribes and offers its commands once they are loaded.
+It loads the policies of parameters ``algorithms`` x ``modes`` (``model.names``; a missing,
+corrupt or incompatible file stops it at start, naming the path) in a thread: the parameter
+services answer meanwhile, and it subscribes and offers commands once they are loaded.
 
 ``mode``, ``algorithm`` and ``reward_weights`` switch at runtime through the standard parameter
 service, kept consistent and checked by ``model.selection``; an accepted change drives from the
@@ -22,7 +19,6 @@ otherwise it is rejected whole, counted on /diagnostics, and changes nothing.
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 
 from exit_decision_msgs.msg import (CavCommandArray, CavOptionArray, EpisodeEvent, ShieldOverrideArray,
                                     TrafficGraph as GraphMsg, VehicleStateArray)
@@ -32,28 +28,25 @@ from rclpy.parameter import Parameter
 
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.shield import Shield
-from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS, TrafficGraph
 from exit_decision.input_checks import InputError, StateLimits
-from exit_decision.model.modes import CUSTOM_MODE, ModeWeights
-from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies
-from exit_decision.model.selection import SELECTION_PARAMETERS, PolicySelection
+from exit_decision.model.selection import SELECTION_PARAMETERS
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.step_pairing import StepPairing
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, options_to_msg, overrides_to_msg
-from exit_decision.ros.parameters import (declare, declare_config, declare_cpu_affinity, declare_thread_priority,
-                                          describe)
+from exit_decision.ros.parameters import (declare_config, declare_cpu_affinity, declare_policy_selection,
+                                          declare_thread_priority)
+from exit_decision.ros.step_pairing import StepPairing
 from exit_decision.ros.topics import (COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC,
                                       OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC)
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import TrafficSnapshot
 
+
 class DecisionNode(Node):
-    """``composed``: the graph builder of the same process tells this node when an episode
-    begins and hands it each decision step's checked states with their graph (``begin_episode``,
-    ``decide``): it subscribes to neither."""
+    """``composed``: the graph builder of the same process calls ``begin_episode`` and ``decide``
+    with each decision step's checked states and graph; the node subscribes to neither."""
 
     def __init__(self, composed: bool = False):
         super().__init__('decision_node')
@@ -61,33 +54,7 @@ class DecisionNode(Node):
         self.config = config = declare_config(self)
         declare_thread_priority(self)
         declare_cpu_affinity(self)
-        def p(name, default, descriptor):
-            return declare(self, name, default, descriptor)
-        self.policy_dir = Path(p('policy_dir', '', describe(
-            'directory with <algorithm>[_<mode>]/policy.pt; empty: the shipped policies', read_only=True))
-            or default_policy_dir())
-        self.modes = list(p('modes', config.mode_matrix.modes, describe(
-            'modes whose per-mode policies are loaded at start', read_only=True))) or [None]
-        algorithm = p('algorithm', '', describe(
-            'a learned method of config/training.yaml, _options after it for one over options, _conditioned at '
-            'the end for one policy of every mode; one of parameter algorithms; empty at start: the last of them',
-            constraints='an algorithm of parameter algorithms'))
-        shipped = not algorithm or algorithm in SHIPPED_ALGORITHMS
-        algorithms = list(p('algorithms', list(SHIPPED_ALGORITHMS) if shipped else [algorithm], describe(
-            f'algorithms whose policies are loaded at start; default: the shipped ones ({", ".join(SHIPPED_ALGORITHMS)}), '
-            'or only the start algorithm if it is another', read_only=True))) or [None]
-        if None in (algorithms[0], self.modes[0]):
-            raise PolicyError('parameters algorithms and modes: give at least one of each')
-        mode = p('mode', self.modes[0], describe('decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
-        start = ModeWeights(config).weights(mode if mode in config.modes else self.modes[0])
-        weights = p('reward_weights', start.tolist(), describe(
-            'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
-            '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode'))
-        self.selection = PolicySelection(config, planned_policies(algorithms, self.modes), algorithm or algorithms[-1],
-                                         mode, weights)
-        for name in ('algorithm', 'mode'):   # the start values the selection settled on
-            if getattr(self.selection, name) != self.get_parameter(name).value:
-                self.set_parameters([Parameter(name, Parameter.Type.STRING, getattr(self.selection, name))])
+        self.policy_dir, self.modes, self.selection = declare_policy_selection(self, config)
         grid = ActionGrid(config.env.actions)
         geometry = RoadGeometry.of(config.scenario.road)
         self.shield, self.limits = Shield.of(config, grid, geometry), StateLimits.of(config, geometry)
@@ -100,7 +67,7 @@ class DecisionNode(Node):
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.pairing = StepPairing(config.scenario.max_steps, self.interval, self.diagnostics.count)
         self.drivers: dict = {}       # (algorithm, mode) -> model.driving.PolicyDriver, once loaded
-        self.loaded: dict | Exception | None = None   # what the loading thread hands over
+        self.loaded: dict | Exception | None = None   # what the loading thread hands over (drivers or error)
         self.when_loaded: list = []   # called once the policies are loaded (composed: the graph builder subscribes)
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
         threading.Thread(target=self.load_policies, name='load_policies', daemon=True).start()
