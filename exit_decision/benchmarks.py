@@ -58,8 +58,8 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     lines = [f'learning benchmark, the mode-conditioned MDGQN ({episodes} episode(s) each, torch threads: 1)']
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(config, 'mdgqn', CONDITIONED, seed, Path(tmp))
-        for transition in trainer.collect_episode(seed, demonstrate=True, epsilon=0.0):
-            trainer.demos.add(transition)
+        for transition in trainer.collector.episode(seed):
+            trainer.experience.demos.add(transition)
         timings = {}
         for label, updates in (('without learning', 0), ('with learning', training.updates_per_decision)):
             def learn(transitions: list, updates: int = updates) -> None:
@@ -67,12 +67,13 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
                     trainer.learn_step()
             steps, started = 0, time.perf_counter()
             for episode in range(episodes):
-                trainer.collect_episode(seed + episode, demonstrate=False, epsilon=0.1, on_decision=learn)
+                trainer.collector.episode(seed + episode, trainer.agent.online, trainer.episode_weights(), 0.1,
+                                          on_decision=learn)
                 steps += trainer.env.episode_log.steps
             elapsed = time.perf_counter() - started
             timings[label] = (steps / elapsed, elapsed / episodes)
             lines.append(f'  env steps/s {label:<17} {steps / elapsed:8.0f}   ({elapsed / episodes:.2f} s per episode)')
-        sampled = trainer.sample()
+        sampled = trainer.experience.sample()
         for _ in range(10):
             trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
         count, started = 200, time.perf_counter()

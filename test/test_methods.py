@@ -93,7 +93,7 @@ def test_each_method_trains_and_leaves_an_evaluable_checkpoint(method, config_di
         env.reset(seed=10_000)
         for _ in range(30):
             q = policy.q_values(env.graph, env.sim.snapshot)
-            assert q.shape == (config.graph.max_vehicles, trainer.grid.size) and np.isfinite(q).all()
+            assert q.shape == (config.graph.max_vehicles, trainer.env.actions.size) and np.isfinite(q).all()
             decision = controller.decide(env.graph, env.sim.snapshot)
             decided += len(decision.actions)
             env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
@@ -129,7 +129,7 @@ def test_a_baseline_as_published_learns_its_papers_reward_without_our_measures(m
     config = load_project(config_dir, overrides=[TINY])
     trainer = Trainer(config, method, 'CONP', 0, tmp_path / 'run')
     policy = load_policy(trainer.run(episodes=1, progress=False))
-    assert len(trainer.demos) == 0 and trainer.state.updates > 0, 'it learnt from its own experience alone'
+    assert len(trainer.experience.demos) == 0 and trainer.state.updates > 0, 'it learnt from its own experience alone'
     assert trainer.env.learning_reward_fn.config.kind == kind, 'it learnt from its paper\'s reward'
     assert trainer.env.reward_fn.config.kind == 'matrix', 'its returns are scored under the mode, as every method\'s'
     assert (policy.metadata['measures'], policy.metadata['reward_variant']) == (False, reward)

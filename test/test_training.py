@@ -33,7 +33,7 @@ def rows(path):
 def test_conditioned_training_run_and_its_evaluation_at_every_mode(config_dir, tmp_path):
     config = load_project(config_dir, overrides=[TINY])
     trainer = Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'run')
-    assert trainer.demonstrator.parameters == config.env.rule_based, 'one neutral teacher'
+    assert trainer.collector.demonstrator.parameters == config.env.rule_based, 'one neutral teacher'
     policy_path = trainer.run(episodes=2, progress=False)
     log = rows(tmp_path / 'run' / 'training.csv')
     assert len(log) == 2 and all(math.isfinite(float(row['loss'])) for row in log)
@@ -73,7 +73,7 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
     with pytest.raises(FileExistsError, match='holds an earlier run'):
         Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=3, progress=False)
     with pytest.raises(ValueError, match='a gqn/CONP run, not mdgqn/CONP'):
-        Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').load_state(tmp_path / 'run' / 'last.pt')
+        Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').checkpoints.load_state(tmp_path / 'run' / 'last.pt')
 
 
 def test_a_budget_of_environment_steps_ends_training_and_runs_the_schedules_in_steps(config_dir, tmp_path):
@@ -107,7 +107,7 @@ def test_training_can_start_from_a_policy_network_without_pre_training(config_di
     for key, value in theirs.network.state_dict().items():
         assert torch.equal(ours.network.state_dict()[key], value), key
     with pytest.raises(PolicyError, match='is not this run'):
-        Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'third').load_network(start)
+        Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'third').checkpoints.load_network(start)
 
 
 def test_train_refuses_episodes_when_the_config_budgets_environment_steps(config_dir, tmp_path, capsys):
@@ -130,15 +130,15 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
 
     config = load_project(config_dir, overrides=[TINY])
     trainer = Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'run', action_space='options')
-    transitions = trainer.collect_episode(800_000, demonstrate=True, epsilon=0.0)
-    neutral = trainer.options.index('route', 'neutral')
+    transitions = trainer.collector.episode(800_000)   # the demonstrator
+    neutral = trainer.env.options.index('route', 'neutral')
     acted = [t.actions[t.actions >= 0] for t in transitions]
     assert all((a == neutral).all() for a in acted), 'the demonstrator: the neutral style, the route plan'
     assert any(t.continuing.any() for t in transitions) and any((~t.continuing & (t.actions >= 0)).any()
                                                                 for t in transitions)
     policy_path = trainer.run(episodes=2, progress=False)
     policy = load_policy(policy_path)
-    assert policy.action_space == 'options' and policy.network.shape.num_actions == trainer.options.size
+    assert policy.action_space == 'options' and policy.network.shape.num_actions == trainer.env.options.size
     evaluate_runs(config, [policy_path], [], ['AGGI'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
                   command='test')
     assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_conditioned_AGGI']['p_CAV'][0] <= 1.0
@@ -150,6 +150,6 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
     try:
         with pytest.raises(PolicyError, match='a policy over options; this command runs policies over grid only'):
             load_controller(config, policy_path, env.shield, env.planner)
-        assert OptionSpace(config, env.shield, env.planner).size == trainer.options.size
+        assert OptionSpace(config, env.shield, env.planner).size == trainer.env.options.size
     finally:
         env.close()

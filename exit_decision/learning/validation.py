@@ -6,19 +6,35 @@ row holds its safety figures and the mean paired return gain over the teacher on
 seeds: the neutral rule-based driver for a grid policy, the best fixed driver of the mode (the
 best constant option) for a policy over options (the teacher's runs are made once per process
 and scored under every mode from their reward vectors). ``selection_score`` turns the rows into the number
-the trainer keeps the best checkpoint by.
+the trainer keeps the best checkpoint by (``record_validation``). ``Validator`` runs the
+validations in a second process (``validation.parallel``) while training goes on, so both
+cores work.
 """
 from __future__ import annotations
 
+import multiprocessing
+import shutil
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from exit_decision.config import ProjectConfig
+from exit_decision.config import ProjectConfig, ValidationConfig
 from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.tables import append_row
+
+if TYPE_CHECKING:
+    from exit_decision.env import ExitDecisionEnv
 
 INFEASIBLE = -1000.0   # score offset of a candidate outside the safety targets in some mode
+VALIDATION_SEED = 900_000   # the first validation seed (training and test seeds lie elsewhere)
+
+
+def validation_seeds(episodes: int) -> list[int]:
+    """The seeds every candidate (and the teacher) is validated on."""
+    return [VALIDATION_SEED + i for i in range(episodes)]
 
 
 @dataclass(frozen=True)
@@ -101,3 +117,59 @@ def selection_score(per_mode: dict[str, dict[str, float]], min_exit_rate: float,
                         row['capped']) for row in per_mode.values())
     gain = min(row['gain'] for row in per_mode.values())
     return gain if shortfall <= 0 else INFEASIBLE - shortfall
+
+
+def record_validation(out_dir: Path, path: Path, per_mode: dict[str, dict[str, float]], settings: ValidationConfig,
+                      best_score: float) -> float:
+    """Log the validation of the candidate at ``path`` in validation.csv and keep it as
+    policy.pt when its score beats ``best_score``; returns the best score."""
+    score = selection_score(per_mode, settings.min_exit_rate, settings.max_cav_collision_rate)
+    episode = int(path.stem.split('_')[1])
+    for mode, row in per_mode.items():
+        append_row(out_dir / 'validation.csv', {'episode': episode, 'mode': mode, **row, 'score': score})
+    if score > best_score:
+        shutil.copyfile(path, out_dir / 'policy.pt')
+        return score
+    return best_score
+
+
+class Validator:
+    """Runs candidate validations in a second process (or inline, in the trainer's ``env``),
+    their results in submission order."""
+
+    def __init__(self, task: ValidationTask, parallel: bool, env: ExitDecisionEnv):
+        self.task, self.env = task, env
+        self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) if parallel else None
+        self.pending: list[tuple[Path, Future | dict]] = []
+
+    def __enter__(self) -> Validator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+    def submit(self, path: Path) -> None:
+        """Validate the candidate at ``path``: in the second process, or at once here (every CAV
+        driven by the candidate, SGRL's one-at-a-time training env too)."""
+        if self.pool is None:
+            single, self.env.sim.single_agent = self.env.sim.single_agent, False   # validated driving every CAV
+            try:
+                self.pending.append((path, validate_checkpoint(self.task, path, self.env)))
+            finally:
+                self.env.sim.single_agent = single
+        else:
+            self.pending.append((path, self.pool.submit(validate_checkpoint, self.task, path)))
+
+    def finished(self, wait: bool = False) -> list[tuple[Path, dict]]:
+        """The validations done (``wait``: all of them, waiting), oldest first."""
+        done = []
+        while self.pending:
+            path, result = self.pending[0]
+            if isinstance(result, Future):
+                if not (wait or result.done()):
+                    break
+                result = result.result()
+            done.append((path, result))
+            self.pending.pop(0)
+        return done
