@@ -1,0 +1,43 @@
+"""The ``bench`` command: throughput figures of the simulation, learning, the sweep and the ROS stack."""
+from __future__ import annotations
+
+import argparse
+
+from exit_decision.cli.arguments import COUNT, SEED, config_options, existing
+from exit_decision.cli.stack import check_thread_priority, cpu_split_option, thread_priority_option
+from exit_decision.config import load_project
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Print the throughput figures ``what`` names (sim, learning, sweep, ros; all: each)."""
+    from exit_decision.benchmarks import bench_learning, bench_simulation
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.what in ('ros', 'all'):
+        check_thread_priority(args.thread_priority)
+    if args.what in ('sim', 'all'):
+        print(bench_simulation(config, args.episodes, args.seed))
+    if args.what in ('learning', 'all'):
+        print(bench_learning(config, args.seed, args.episodes))
+    if args.what in ('sweep', 'all'):
+        from exit_decision.benchmarks import bench_sweep
+        print(bench_sweep(args.config_dir, args.episodes, args.seed))
+    if args.what in ('ros', 'all'):
+        from exit_decision.ros.stack.bench import bench_ros
+        print(bench_ros(str(args.config_dir or ''), str(args.policy_dir or ''), args.steps, args.seed,
+                        args.thread_priority, cpu_split=not args.no_cpu_split))
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """Adds ``bench``."""
+    bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning; '
+                                              'the compare sweep with 1 and every local worker; ROS)')
+    config_options(bench)
+    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'sweep', 'ros', 'all'], default='all')
+    bench.add_argument('--steps', type=COUNT, default=1000, help='ros: synchronous steps to measure')
+    bench.add_argument('--policy-dir', type=existing('dir'), default=None, help='ros: default the shipped policies/')
+    bench.add_argument('--episodes', type=COUNT, default=2, help='episodes per measurement (sweep: seeds per cell)')
+    bench.add_argument('--seed', type=SEED, default=0)
+    thread_priority_option(bench, 'ros: the benchmark\'s observer too, once the nodes are started; ')
+    cpu_split_option(bench, 'ros: ')
+    bench.set_defaults(func=cmd_bench)

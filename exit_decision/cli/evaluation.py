@@ -1,0 +1,139 @@
+"""Commands that run the scenario and evaluate: ``run`` (episodes of the scenario, the SPEC
+section 6 metrics) and ``evaluate`` (policies and the reference drivers on fixed seeds)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tqdm import tqdm
+
+from exit_decision.cli.arguments import COUNT, SEED, OptionError, checkpoint, config_options, known, number
+from exit_decision.config import ConfigError, default_config_dir, load_project
+from exit_decision.errors import UsageError
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run episodes of the scenario and print the SPEC section 6 metrics."""
+    import numpy as np
+
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.metrics import markdown_table, summarize
+
+    if args.variant and args.scenario_override:
+        raise UsageError('--variant and --scenario-override: give one (a variant is a scenario override)')
+    if args.variant:
+        from exit_decision.experiments.compare import load_variants
+        config = load_variants((args.config_dir or default_config_dir()) / 'variants.yaml', args.config_dir,
+                               args.override, [args.variant])[args.variant]
+    else:
+        config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.mode:
+        known('--mode', args.mode, config.mode)
+    env = ExitDecisionEnv(config, mode=args.mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
+    hold = np.full(config.graph.max_vehicles, env.actions.index(0, 0.0))
+    episodes, peak = [], 0
+    try:
+        for episode in tqdm(range(args.episodes), desc='episodes', unit='ep', disable=args.episodes == 1):
+            env.reset(seed=args.seed + episode)
+            done = False
+            while not done:
+                _, _, terminated, truncated, _ = env.step(hold)
+                done = terminated or truncated
+            episodes.append(env.episode_log.metrics())
+            peak = max(peak, env.episode_log.peak_vehicles)
+    finally:
+        env.close()
+    label = f'{args.driver} CAVs, reward {config.env.reward_variant}/{env.mode}'
+    title = f'{args.episodes} episode(s), seeds {args.seed}..{args.seed + args.episodes - 1}, {label}'
+    table = markdown_table([(label, summarize(episodes))])
+    print(title)
+    print(table)
+    print(f'peak vehicles on the road at one step: {peak} (the graph holds N = {config.graph.max_vehicles})')
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(
+            f'# {title}\n\nMade by `{args.invocation}` (mean ± std over episodes).\n\n{table}\n\n'
+            f'## Configuration\n\n```json\n{config.model_dump_json(indent=2)}\n```\n', encoding='utf-8')
+        print(f'table and configuration: {args.markdown}')
+    if args.csv:
+        from exit_decision.tables import write_rows
+        write_rows(args.csv, [{'seed': args.seed + i, **row} for i, row in enumerate(episodes)])
+        print(f'per-episode metrics: {args.csv}')
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate policies and/or the reference drivers on fixed seeds; print and save the table."""
+    from exit_decision.evaluation.report import evaluate_runs
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    if not args.policy and not args.driver:
+        raise OptionError('nothing to evaluate: give --policy or --driver (each repeatable)')
+    for mode in args.mode:
+        known('--mode', mode, config.mode)
+    modes = args.mode or list(config.training.conditioning.validation_modes)
+    sanity_drivers = {}
+    if any(':' in driver for driver in args.driver):
+        from exit_decision.experiments.reward_sanity import load_sweep
+        sanity_drivers, _ = load_sweep((args.config_dir or default_config_dir()) / 'reward_sanity.yaml', config)
+        for driver in args.driver:
+            if driver.partition(':')[2] and driver.partition(':')[2] not in sanity_drivers:
+                raise ConfigError(f'--driver {driver}: no such driver in reward_sanity.yaml; known: '
+                                  f'{", ".join(sanity_drivers)}')
+    show = None
+    if args.show:
+        from exit_decision.visualization.episodes import ShowEpisodes
+        show = ShowEpisodes(args.out / 'show', min(args.show, args.episodes))
+    table = evaluate_runs(config, policies=args.policy, drivers=args.driver, modes=modes, episodes=args.episodes,
+                          sanity_drivers=sanity_drivers, show=show,
+                          seed=args.seed, out_dir=args.out, command=args.invocation)
+    print(table)
+    if show:
+        print(f'time-space diagrams and bird\'s-eye clips of the first {show.episodes} episode(s) of each run: '
+              f'{show.out_dir}')
+    return 0
+
+
+def reference_driver(text: str) -> str:
+    """``sumo``, ``rule_based`` or ``rule_based:<name>`` (the name is checked against the sweep later)."""
+    name, colon, variant = text.partition(':')
+    if name == 'sumo' and not colon or name == 'rule_based' and (not colon or variant):
+        return text
+    raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<driver of reward_sanity.yaml>')
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """Adds ``run`` and ``evaluate``."""
+    run = commands.add_parser('run', help='run episodes of the scenario and print the metrics table')
+    config_options(run)
+    run.add_argument('--episodes', type=COUNT, default=1)
+    run.add_argument('--seed', type=SEED, default=0, help='seed of the first episode (then +1 each)')
+    run.add_argument('--driver', choices=['sumo', 'hold'], default='sumo',
+                     help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to the target exit (the '
+                          'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
+                          'every CAV holding lane and speed (shows that collisions are real)')
+    run.add_argument('--mode', default=None, help='decision mode for the reward (default: env.yaml)')
+    run.add_argument('--variant', default=None, help='a cell of config/variants.yaml (e.g. density_1.45)')
+    run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here')
+    run.add_argument('--markdown', type=Path, default=None,
+                     help='write the table with the command and the full configuration here')
+    run.set_defaults(func=cmd_run)
+
+    evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
+    config_options(evaluate)
+    evaluate.add_argument('--policy', type=checkpoint, action='append', default=[], help='a policy.pt (repeatable)')
+    evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
+                          help='a reference driver (repeatable): sumo (SUMO\'s own drivers), rule_based '
+                               '(the neutral teacher, env.yaml\'s rule_based) or rule_based:<name> (a driver '
+                               'of config/reward_sanity.yaml)')
+    evaluate.add_argument('--mode', action='append', default=[],
+                          help='score (and run a conditioned policy) under this mode (repeatable; default: '
+                               'training.yaml conditioning.validation_modes); one CSV per run and mode')
+    evaluate.add_argument('--episodes', type=COUNT, default=50)
+    evaluate.add_argument('--seed', type=SEED, default=10_000, help='first test seed (never used in training)')
+    evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
+                          help='directory for the CSV and Markdown tables')
+    evaluate.add_argument('--show', type=number(int, 0), default=0, metavar='N',
+                          help='draw the first N episodes of each run into --out/show/: time-space diagram (PNG) '
+                               'and bird\'s-eye clip (GIF; MP4 too where ffmpeg exists)')
+    evaluate.set_defaults(func=cmd_evaluate)

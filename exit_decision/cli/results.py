@@ -1,0 +1,49 @@
+"""The pages' inputs: ``plot`` (figures of training runs and evaluations) and ``report`` (the
+results page)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from exit_decision.cli.arguments import existing
+from exit_decision.config import load_project
+from exit_decision.model.names import DEFAULT_ALGORITHM
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """PNG figures from training runs and an evaluation directory."""
+    from exit_decision.evaluation.plots import make_all
+
+    for path in make_all(args.runs, args.evaluation, args.out):
+        print(path)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write the results page from evaluation, ablation and figures."""
+    from exit_decision.evaluation.report import results_page
+
+    config = load_project(args.config_dir)
+    print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
+                       max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings))
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """Adds ``plot`` and ``report``."""
+    plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
+    plot.add_argument('--runs', type=existing('dir'), nargs='*', default=[], help='training run directories')
+    plot.add_argument('--evaluation', type=existing('dir'), default=None, help='an evaluate --out directory')
+    plot.add_argument('--out', type=Path, default=Path('docs/figures'))
+    plot.set_defaults(func=cmd_plot)
+
+    report = commands.add_parser('report', help='write docs/results.md from the generated results')
+    report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'))
+    report.add_argument('--config-dir', type=existing('dir'), default=None)
+    report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies') / DEFAULT_ALGORITHM],
+                        help='training run directories (validation history, wall time)')
+    report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity'))
+    report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
+    report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'))
+    report.add_argument('--out', type=Path, default=Path('docs/results.md'))
+    report.set_defaults(func=cmd_report)

@@ -1,0 +1,58 @@
+"""The ``train`` command: a learned method for one mode or the mode-conditioned network."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known
+from exit_decision.config import load_project
+from exit_decision.errors import UsageError
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train a learned method (one mode or the conditioned network); writes policy.pt, logs and config."""
+    from exit_decision.learning.trainer import Trainer
+    from exit_decision.model.names import CONDITIONED
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    known('--algorithm', args.algorithm, config.training.method)
+    if args.mode != CONDITIONED:
+        known('--mode', args.mode, config.mode)
+    episodes = args.episodes or config.training.episodes
+    steps = config.training.of_method(args.algorithm).environment_steps
+    if args.episodes and steps:
+        raise UsageError(f'--episodes {args.episodes}: this config\'s budget for {args.algorithm} is environment_steps: '
+                         f'{steps}; give one budget (drop --episodes, or set environment_steps to null with --override)')
+    out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
+    if args.reward_variant:
+        known('--reward-variant', args.reward_variant, config.reward)
+        config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
+    trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir, args.action_space)
+    policy = trainer.run(episodes, resume=args.resume, init=args.init)
+    print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """Adds ``train``."""
+    train = commands.add_parser('train', help='train a learned method (GQN, MDGQN, the baselines) for a mode or all')
+    config_options(train)
+    train.add_argument('--algorithm', default='mdgqn',
+                       help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
+                            'dueling_ddqn, sgrl, mgrl, ngrl, and each baseline as published (<name>_published, e.g. dqn_published)')
+    train.add_argument('--mode', default='conditioned',
+                       help='conditioned (one network for every mode, trained on all by relabelling) or a '
+                            'mode of config/modes.yaml (a per-mode network)')
+    train.add_argument('--episodes', type=COUNT, default=None,
+                       help="RL episodes (default: config/training.yaml's episodes; refused when the config's budget "
+                            "is environment_steps)")
+    train.add_argument('--seed', type=SEED, default=0)
+    train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
+    train.add_argument('--resume', type=checkpoint, default=None, help='a last.pt to continue from')
+    train.add_argument('--init', type=checkpoint, default=None,
+                       help='a policy.pt whose network starts the RL phase (no pre-training)')
+    train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
+    train.add_argument('--action-space', choices=['grid', 'options'], default='grid',
+                       help='the 81-action grid (paper 000) or options (config/env.yaml options: a lane intent x a '
+                            'driving style, held until it ends, executed by the rule-based low level)')
+    train.set_defaults(func=cmd_train)
