@@ -36,9 +36,35 @@ def test_masks_follow_the_road_and_the_route(space):
     assert intents(space, space.mask(top)) == {'keep', 'right', 'route'}, 'no lane 3'
     off_route = make_vehicle('o', 'CAV', lane=1, position=250.0, edge='Highway_1')   # lane 0 is the route
     assert space.planned(off_route)
-    assert intents(space, space.mask(off_route)) == {'keep', 'route'}, 'the planner owns its lane'
+    assert intents(space, space.mask(off_route)) == {'route'}, 'the planner owns its lane, near an exit: route'
     # every style is offered with every allowed intent
     assert space.mask(middle).sum() == 3 * len(space.drivers)
+
+
+def test_near_the_first_exit_a_cav_not_in_the_lane_it_needs_follows_the_route(space):
+    start = space.geometry.first_exit.merge_done_at - space.route_only_before
+    assert space.route_only_before > 0
+    early = make_vehicle('e', 'CAV', lane=2, position=start - 5.0)
+    assert intents(space, space.mask(early)) == {'keep', 'right', 'route'}
+    late = make_vehicle('l', 'CAV', lane=2, position=start + 5.0)
+    assert intents(space, space.mask(late)) == {'route'}, 'lane 2 must reach lane 1 before the first exit'
+    ready = make_vehicle('r', 'CAV', lane=1, position=start + 5.0)
+    assert intents(space, space.mask(ready)) == {'keep', 'left', 'route'}, 'lane 1 is where it must be'
+    exit_lane = make_vehicle('x', 'CAV', lane=0, position=300.0, edge='Highway_1')
+    assert intents(space, space.mask(exit_lane)) == {'keep', 'route'}
+
+
+def test_a_cav_the_planner_drives_keeps_the_planners_style(space):
+    off_route = make_vehicle('o', 'CAV', lane=1, position=250.0, edge='Highway_1', speed=20.0)
+    leader = make_vehicle('a', 'HV1', lane=1, position=275.0, edge='Highway_1', speed=15.0)
+    snapshot = TrafficSnapshot([off_route, leader])
+    executor = OptionExecutor(space)
+    commands = {}
+    for style in ('calm', space.planner_style):
+        executor.reset()
+        executor.choose(snapshot, ['o'], 0.0, lambda vehicle, mask: space.index('route', style))
+        commands[style] = executor.commands(snapshot, ['o'])['o']
+    assert commands['calm'] == commands[space.planner_style]
 
 
 def test_masks_are_the_same_under_every_mode(project_config):
@@ -56,7 +82,7 @@ def test_masks_are_the_same_under_every_mode(project_config):
 
 def test_an_option_ends_on_time_when_its_change_is_done_at_a_takeover_or_a_reset(space):
     executor = OptionExecutor(space)
-    cav = make_vehicle('c', 'CAV', lane=1, position=60.0)
+    cav = make_vehicle('c', 'CAV', lane=1, position=30.0)
     snapshot = TrafficSnapshot([cav])
     left = space.index('left', 'neutral')
     chosen = []
@@ -68,14 +94,14 @@ def test_an_option_ends_on_time_when_its_change_is_done_at_a_takeover_or_a_reset
     assert executor.choose(snapshot, ['c'], 0.0, chooser) == {'c': left}
     executor.choose(snapshot, ['c'], 0.5, chooser)
     assert len(chosen) == 1, 'held, not chosen again'
-    changed = make_vehicle('c', 'CAV', lane=2, position=70.0)
+    changed = make_vehicle('c', 'CAV', lane=2, position=40.0)
     executor.choose(TrafficSnapshot([changed]), ['c'], 1.0, chooser)
     assert len(chosen) == 2, 'its lane change is done'
     executor.choose(TrafficSnapshot([changed]), ['c'], 1.0 + space.hold_time, lambda v, m: space.index('keep', 'calm'))
     assert executor.held['c'].index == space.index('keep', 'calm'), 'its hold time is over'
     off_route = make_vehicle('c', 'CAV', lane=1, position=250.0, edge='Highway_1')
-    executor.choose(TrafficSnapshot([off_route]), ['c'], 1.5 + space.hold_time, lambda v, m: space.index('keep', 'close'))
-    assert executor.held['c'].index == space.index('keep', 'close'), 'the planner took it over'
+    executor.choose(TrafficSnapshot([off_route]), ['c'], 1.5 + space.hold_time, lambda v, m: space.index('route', 'close'))
+    assert executor.held['c'].index == space.index('route', 'close'), 'the planner took it over'
     executor.reset()
     assert executor.held == {}
     with pytest.raises(ValueError, match='masked'):

@@ -11,7 +11,8 @@ SUMO's car following and lane changing are never used for these CAVs.
 Masks depend on the road and the planner only, never on the traffic or the mode: a lane
 intent is allowed where its lane exists and, with the planner on, keeps the CAV on its route;
 a CAV the planner drives may only choose ``keep`` or ``route`` options (its lane is the
-planner's, its style its option's). A constant option (one style, ``route``, for every CAV
+planner's, its style ``planner_style`` or its option's); near the first exit a CAV not yet in
+the lane it needs may only choose ``route`` options (``route_only_before``). A constant option (one style, ``route``, for every CAV
 and the whole episode) is a fixed driver of this low level. The shield keeps the last word on every command.
 """
 from __future__ import annotations
@@ -61,7 +62,8 @@ class OptionSpace:
 
     def __init__(self, config: ProjectConfig, shield: Shield, planner: LanePlanner | None):
         options = config.env.options
-        self.hold_time = options.hold_time
+        self.hold_time, self.route_only_before, self.planner_style = (options.hold_time, options.route_only_before,
+                                                                      options.planner_style)
         self.options = tuple(Option(intent, style) for intent in options.lane_intents for style in options.styles)
         self.size = len(self.options)
         self.shield, self.geometry, self.planner = shield, shield.geometry, planner
@@ -80,13 +82,27 @@ class OptionSpace:
         """Does the lane planner drive this CAV's lane now (it is off its route)?"""
         return self.planner is not None and not self.planner.on_route(vehicle)
 
+    def route_only(self, vehicle: VehicleState) -> bool:
+        """Only ``route`` intents: from ``route_only_before`` metres before the first exit's
+        junction ends, a CAV on the highway not in the route lane nearest the exit lane (lane 1
+        there, lane 0 after it) follows the route's lane plan (measured: CAVs that kept lane 2,
+        or lane 1 past the first exit, missed the target exit when the planner took them late)."""
+        geometry = self.geometry
+        start = geometry.first_exit.merge_done_at - self.route_only_before
+        return (self.route_only_before > 0 and vehicle.on_highway and vehicle.position >= start
+                and vehicle.position < geometry.target_exit.diverge_at
+                and vehicle.lane_index != min(geometry.route_lanes(vehicle.position)))
+
     def mask(self, vehicle: VehicleState) -> np.ndarray:
         """(size,) bool: the options this CAV may begin now (road and planner only)."""
         allowed = np.zeros(self.size, dtype=bool)
         planned = self.planned(vehicle)
+        route_only = self.route_only(vehicle)
         for index, option in enumerate(self.options):
             change = LANE_CHANGE_OF_INTENT[option.lane_intent]
-            if not change:
+            if route_only:
+                allowed[index] = change is None
+            elif not change:
                 allowed[index] = True
             elif not planned and self.geometry.lane_change_exists(vehicle, change):
                 allowed[index] = self.planner is None or self.planner.on_route(vehicle, vehicle.lane_index + change)
@@ -141,7 +157,8 @@ class OptionExecutor:
 
         def command_of(vehicle: VehicleState, mask: np.ndarray) -> CavCommand:
             held = self.held[vehicle.vehicle_id]
-            target = None if space.planned(vehicle) else held.target_lane
-            return space.drivers[space.options[held.index].style].command(vehicle, mask, snapshot, target)
+            planned = space.planned(vehicle)
+            style = space.planner_style if planned and space.planner_style else space.options[held.index].style
+            return space.drivers[style].command(vehicle, mask, snapshot, None if planned else held.target_lane)
 
         return shielded_commands(space.shield, snapshot, cav_ids, command_of)
