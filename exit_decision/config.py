@@ -306,14 +306,13 @@ class OptionsConfig(Strict):
     low_level: dict[str, float | bool]           # rule_based keys over env.yaml's, for every style
     styles: dict[str, dict[str, float]]          # name -> rule_based keys over env.yaml's and low_level
     planner_style: str | None = None             # the style of a CAV the lane planner drives (None: its option's)
-    route_only_before: NonNegativeFloat = 0.0    # [m] before the first exit's junction ends: route intents only
-                                                 # for a CAV not in the route lane nearest the exit lane
+    route_only_before: NonNegativeFloat = 0.0    # [m] before the first exit's junction end: route intents only
 
     @model_validator(mode='after')
     def _styles(self) -> OptionsConfig:
         if not self.styles:
             raise ValueError('styles: at least one style is needed')
-        if self.planner_style is not None and self.planner_style not in self.styles:
+        if self.planner_style not in (None, *self.styles):
             raise ValueError(f'planner_style: {self.planner_style!r} is not a style; styles: {", ".join(self.styles)}')
         if 'keep' not in self.lane_intents or len(set(self.lane_intents)) != len(self.lane_intents):
             raise ValueError(f'lane_intents: each at most once, keep among them, got {self.lane_intents}')

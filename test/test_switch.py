@@ -32,3 +32,24 @@ def test_no_leader_in_range_gives_no_headway():
     steps = [(k * 0.1, [make_vehicle('cav', 'CAV', speed=20.0)]) for k in range(40)]
     before, after = switch_windows(steps, switch_time=2.0, window=2.0)
     assert math.isnan(before.headway) and math.isnan(after.headway) and before.speed == 20.0
+
+
+def test_the_stack_shows_the_recorded_switch_beside_the_same_seed_without_it():
+    """On the replay fixture (the shipped stack, AGGP -> CONP half-way): the report names the
+    switch, and the environment's runs of the same seed with and without it are the same
+    driving before it (like for like), so the rows after it tell what the switch did."""
+    from pathlib import Path
+
+    from exit_decision.config import load_project
+    from exit_decision.model.names import default_policy_dir
+    from exit_decision.ros.bags.replay import FIXTURE_RUN
+    from exit_decision.ros.bags.switch import recorded_switch, switch_report
+
+    fixture = Path(__file__).parent / 'fixtures' / 'replay_bag'
+    config = load_project(None, overrides=[fixture / 'override.yaml'])
+    switch = recorded_switch(fixture / 'bag', config)
+    assert (switch.before, switch.after) == ('AGGP', 'CONP') and switch.step >= FIXTURE_RUN['switch_at_step']
+    report = switch_report(fixture / 'bag', config, default_policy_dir(), FIXTURE_RUN['algorithm'], FIXTURE_RUN['seed'])
+    assert report.startswith(f'the switch AGGP -> CONP at t = {switch.time:.1f} s')
+    rows = [line.split('|')[2:] for line in report.splitlines() if line.startswith('| environment') and 'before' in line]
+    assert len(rows) == 2 and rows[0] == rows[1], 'the same driving before the switch'

@@ -83,6 +83,11 @@ def cmd_stack(args: argparse.Namespace) -> int:
         switched = run.mode_switch.endswith('accepted')
         label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switched else '')
         print(markdown_table([(label, summarize(run.episodes))]))
+        if switched:   # what the switch changed, beside the same seed without it
+            from exit_decision.model.names import default_policy_dir
+            from exit_decision.ros.bags.switch import switch_report
+            print(switch_report(bag, config, Path(args.policy_dir) if args.policy_dir else default_policy_dir(),
+                                args.algorithm, args.seed))
     else:
         print('no episode finished' + ('' if run.stopped_by else ' (see the logs)'))
     print(f'bag: {bag}')

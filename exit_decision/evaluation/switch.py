@@ -14,8 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from exit_decision.env import ExitDecisionEnv
 from exit_decision.episode_log import HEADWAY_MIN_SPEED, HEADWAY_RANGE
+from exit_decision.model.driving import PolicyDriver
 from exit_decision.traffic import TrafficSnapshot, VehicleState
+
+#: the episode's (time [s], vehicles) of every simulation step, in order
+Steps = list[tuple[float, list[VehicleState]]]
 
 
 @dataclass(frozen=True)
@@ -59,3 +64,33 @@ def switch_windows(steps: Iterable[tuple[float, list[VehicleState]]], switch_tim
         return WindowFigures(mean(side['speed']), mean(side['headway']), side['brakings'], len(followed))
 
     return figures(sums['before']), figures(sums['after'])
+
+
+def policy_steps(env: ExitDecisionEnv, driver: PolicyDriver, seed: int, weights: np.ndarray, until: float,
+                 switch: tuple[float, np.ndarray] | None = None) -> Steps:
+    """The (time, vehicles) of every step of one episode in the environment (no ROS) up to
+    ``until`` [s], the policy deciding for ``weights``, or from ``switch`` = (time, weights) on
+    for those (every option held ends there, as in the decision node)."""
+    env.reset(seed=seed)
+    driver.reset()
+    steps: Steps = [(env.sim.state.time, list(env.sim.snapshot.vehicles))]
+    done = False
+    while not done and steps[-1][0] < until:
+        if switch is not None and env.sim.state.time >= switch[0] - 1e-9:
+            weights, switch = switch[1], None
+            driver.reset()
+        decision = driver.decide(env.graph, env.sim.snapshot, weights, env.sim.state.time)
+        _, _, terminated, truncated, info = env.step_commands(decision.commands)
+        steps += [(result.time, result.vehicles) for result in info['step_results']]
+        done = terminated or truncated
+    return steps
+
+
+def switch_table(runs: list[tuple[str, tuple[WindowFigures, WindowFigures]]], window: float) -> str:
+    """(label, (before, after)) of each run, as a Markdown table."""
+    rows = ['| CAVs on the road at the switch | speed [m/s] | time headway [s] | hard brakings |',
+            '|---|---:|---:|---:|']
+    for run, (before, after) in runs:
+        for side, figures in ((f'{window:g} s before', before), (f'{window:g} s after', after)):
+            rows.append(f'| {run}, {side} | {figures.speed:.2f} | {figures.headway:.2f} | {figures.hard_brakings} |')
+    return '\n'.join(rows)
