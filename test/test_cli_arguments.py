@@ -63,6 +63,7 @@ BAD = [
     ['plot', '--runs', 'MISSING'], ['plot', '--evaluation', 'MISSING'],
     ['report', '--evaluation', 'MISSING'], ['report', '--runs', 'MISSING'], ['report', '--sanity', 'MISSING'],
     ['report', '--config-dir', 'MISSING'], ['report', '--tradeoff', 'MISSING'], ['report', '--figures', 'MISSING'],
+    ['report', '--options-table', 'MISSING'], ['report', '--readme', 'MISSING'],
     ['compare', '--method', 'nobody'], ['compare', '--method', NOT_CHECKPOINT], ['compare', '--variant', 'NOPE'],
     ['compare', '--variants', 'MISSING'], ['compare', '--train', 'NOPE'], ['compare', '--training', 'MISSING'],
     ['compare', '--mode', 'NOPE'], ['compare', '--episodes', '0'], ['compare', '--seed', '-1'],

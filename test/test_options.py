@@ -186,6 +186,29 @@ def test_the_best_fixed_driver_is_the_best_constant_option_per_mode():
     assert '+1.000 [+1.000, +1.000] ↑' in text
 
 
+def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo_drivers_per_mode():
+    from exit_decision.experiments.constant_options import readme_table
+
+    def row(run, seed, aggi, coni, speed=15.0):
+        return {'run': run, 'seed': seed, 'variant': 'v', 'return_AGGI': aggi, 'return_CONI': coni, 'v_AVs': speed,
+                **dict.fromkeys(('headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
+    rows = [row(run, seed, aggi + seed * seed, coni + seed, speed) for seed in (1, 2, 3)
+            for run, aggi, coni, speed in [('option_neutral', 10, 10, 15), ('option_close', 11, 9, 16),
+                                           ('option_calm', 8, 12, 14), ('sumo', 9, 9, 15),
+                                           ('policy_AGGI', 12, 0, 17), ('policy_CONI', 0, 13, 13)]]
+    lines = readme_table(rows, ['AGGI', 'CONI'], 'v').splitlines()
+    aggi = [line for line in lines if line.startswith('| AGGI |')]
+    assert [line.split(' | ')[1] for line in aggi] == [
+        'the shipped policy', 'the best fixed driver (`close`)', 'the neutral driver', "SUMO's drivers"]
+    assert '| 17.00 |' in aggi[0] and aggi[0].endswith('+2.000 [+2.000, +2.000] ↑ |')
+    assert aggi[2].endswith('— |')
+    coni = [line for line in lines if line.startswith('| CONI |')]
+    assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ |')
+    assert lines[-1].endswith("The shipped policy's return against the best fixed driver: above under AGGI, CONI, and "
+                              "against SUMO's drivers: above under AGGI, CONI.")
+    assert len(readme_table([r for r in rows if not r['run'].startswith('policy_')], ['AGGI'], 'v').splitlines()) == 2 + 3 + 2
+
+
 def test_the_env_over_options_reads_only_the_choosing_rows(project_config):
     from exit_decision.env import ExitDecisionEnv
 
@@ -231,3 +254,18 @@ def test_the_env_over_options_reads_only_the_choosing_rows(project_config):
                 env.step(action)
     finally:
         env.close()
+
+
+def test_report_writes_the_readme_table_between_its_markers_and_refuses_a_readme_without_them(tmp_path):
+    from exit_decision.errors import UsageError
+    from exit_decision.evaluation.report import README_MARKERS, write_readme_table
+
+    readme = tmp_path / 'README.md'
+    readme.write_text(f'# title\n\n{README_MARKERS[0]}\nold table\n{README_MARKERS[1]}\n\n## next\n')
+    write_readme_table(readme, '| new |', 'exit-decision options-table --seed 10000')
+    write_readme_table(readme, '| newer |', 'exit-decision options-table --seed 10000')
+    assert readme.read_text() == (f'# title\n\n{README_MARKERS[0]}\n| newer |\nRows made by '
+                                  f'`exit-decision options-table --seed 10000`.\n{README_MARKERS[1]}\n\n## next\n')
+    readme.write_text('# no markers\n')
+    with pytest.raises(UsageError, match='README.md: needs the lines'):
+        write_readme_table(readme, '| new |', 'x')

@@ -20,12 +20,19 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    """Write the results page from evaluation, ablation and figures."""
-    from exit_decision.evaluation.report import results_page
+    """Write the results page from evaluation, ablation and figures, and the README's results
+    table from the options table of the test seeds."""
+    from exit_decision.evaluation.report import results_page, write_readme_table
+    from exit_decision.experiments.constant_options import readme_table
+    from exit_decision.tables import read_rows
 
     config = load_project(args.config_dir)
     print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings))
+    table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
+                         config.env.reward_variant)
+    made_by = (args.options_table / 'constant_options.md').read_text(encoding='utf-8').split('`')[1]
+    print(write_readme_table(args.readme, table, made_by))
     return 0
 
 
@@ -46,4 +53,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
     report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'))
     report.add_argument('--out', type=Path, default=Path('docs/results.md'))
+    report.add_argument('--options-table', type=existing('dir'), default=Path('docs/results/options/test_seeds'),
+                        help='an options-table --out directory of the test seeds, with --policy: the README\'s table')
+    report.add_argument('--readme', type=existing('file'), default=Path('README.md'),
+                        help='the README whose results table (between its markers) is written again')
     report.set_defaults(func=cmd_report)

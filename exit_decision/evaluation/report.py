@@ -12,6 +12,7 @@ from exit_decision.actions import ActionGrid
 from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig, RuleBasedConfig
 from exit_decision.env import ExitDecisionEnv
+from exit_decision.errors import UsageError
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
@@ -290,3 +291,21 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
         parts += [f'![{path.stem}]({relative(path)})' for path in figures]
     out.write_text('\n'.join(parts) + '\n', encoding='utf-8')
     return out
+
+
+#: the README lines between which ``report`` writes the results table
+README_MARKERS = ('<!-- results table: written by `exit-decision report` -->', '<!-- end of results table -->')
+
+
+def write_readme_table(readme: Path, table: str, command: str) -> Path:
+    """Replaces what stands between the README's markers with ``table`` and the command that
+    made its rows; refuses a README without the markers."""
+    text = readme.read_text(encoding='utf-8')
+    begin, end = README_MARKERS
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise UsageError(f'{readme}: needs the lines {begin!r} and then {end!r}, once each')
+    head, rest = text.split(begin)
+    _, tail = rest.split(end)
+    readme.write_text(f'{head}{begin}\n{table}\nRows made by `{command}`.\n{end}{tail}', encoding='utf-8')
+    return readme
+

@@ -89,43 +89,102 @@ def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs
                                      desc='constant options', unit='ep') for row in rows]
 
 
+def _by_run_and_seed(rows: list[dict], variant: str, neutral: str) -> tuple[dict, list[int]]:
+    """The rows of one reward variant by (run, seed), and the seeds the neutral option ran."""
+    by = {(r['run'], int(r['seed'])): r for r in rows if r['variant'] == variant}
+    return by, sorted(s for run, s in by if run == neutral)
+
+
+def _returns(by: dict, run: str, seeds: list[int], mode: str) -> np.ndarray:
+    return np.array([float(by[(run, s)][f'return_{mode}']) for s in seeds])
+
+
+def _paired(by: dict, run: str, other: str, seeds: list[int], mode: str) -> str:
+    """``run`` minus ``other`` under ``mode``, paired over the seeds, with its 95% interval
+    (↑ / ↓: the interval excludes 0)."""
+    mean, low, high = paired_interval(_returns(by, run, seeds, mode) - _returns(by, other, seeds, mode))
+    mark = ' ↑' if low > 0 else ' ↓' if high < 0 else ''
+    return f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]{mark}'
+
+
+def _means(by: dict, run: str, seeds: list[int]) -> list[str]:
+    return [f'{np.nanmean([float(by[(run, s)][c]) for s in seeds]):.3g}' for c in COLUMNS]
+
+
+def best_fixed_drivers(by: dict, seeds: list[int], modes: list[str]) -> dict[str, str]:
+    """Per mode, the constant option with the highest mean return: the best fixed driver."""
+    options = [run for run in dict.fromkeys(run for run, _ in by) if run.startswith('option_')]
+    return {mode: max(options, key=lambda run: _returns(by, run, seeds, mode).mean()) for mode in modes}
+
+
 def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral')) -> str:
     """Per run: the driving columns, then per mode its return under ``variant`` and the paired
     difference to the neutral option; then, per mode, the best constant option (the best fixed
     driver)."""
-    rows = [r for r in rows if r['variant'] == variant]
-    runs = [run for run in dict.fromkeys(r['run'] for r in rows) if not run.startswith('policy_')]
-    by = {(r['run'], int(r['seed'])): r for r in rows}
-    seeds = sorted(s for run, s in by if run == neutral)
+    by, seeds = _by_run_and_seed(rows, variant, neutral)
+    runs = [run for run in dict.fromkeys(run for run, _ in by) if not run.startswith('policy_')]
     lines = [f'### Reward variant `{variant}` ({len(seeds)} seeds)', '', '| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
              + ' |', '|---' * (1 + len(COLUMNS) + len(modes)) + '|']
-    best = {}
     for run in runs:
-        episodes = [by[(run, s)] for s in seeds]
-        cells = [f'{np.nanmean([float(e[c]) for e in episodes]):.3g}' for c in COLUMNS]
-        for mode in modes:
-            values = np.array([float(e[f'return_{mode}']) for e in episodes])
-            mean, low, high = paired_interval(values - [float(by[(neutral, s)][f'return_{mode}']) for s in seeds])
-            mark = ' ↑' if low > 0 else ' ↓' if high < 0 else ''
-            cells.append(f'{values.mean():.3f} ({mean:+.3f} [{low:+.3f}, {high:+.3f}]{mark})')
-            if run.startswith('option_') and (mode not in best or values.mean() > best[mode][1]):
-                best[mode] = (run, values.mean())
+        cells = _means(by, run, seeds) + [f'{_returns(by, run, seeds, mode).mean():.3f} ({_paired(by, run, neutral, seeds, mode)})'
+                                          for mode in modes]
         lines.append(f'| {run} | ' + ' | '.join(cells) + ' |')
+    best = best_fixed_drivers(by, seeds, modes)
     lines += ['', 'The best fixed driver (the best constant option) per mode: '
-              + ', '.join(f'{mode} `{run}` ({value:.3f})' for mode, (run, value) in best.items()) + '.']
+              + ', '.join(f'{mode} `{run}` ({_returns(by, run, seeds, mode).mean():.3f})' for mode, run in best.items()) + '.']
     if any((f'policy_{mode}', seeds[0]) in by for mode in modes):
         lines += ['', '| policy at mode | ' + ' | '.join(COLUMNS) + ' | return | − the best fixed driver | − SUMO\'s drivers |',
                   '|---' * (4 + len(COLUMNS)) + '|']
         for mode in modes:
-            episodes = [by[(f'policy_{mode}', s)] for s in seeds]
-            own = np.array([float(e[f'return_{mode}']) for e in episodes])
-            cells = [f'{np.nanmean([float(e[c]) for e in episodes]):.3g}' for c in COLUMNS] + [f'{own.mean():.3f}']
-            for other in (best[mode][0], 'sumo'):
-                mean, low, high = paired_interval(own - [float(by[(other, s)][f'return_{mode}']) for s in seeds])
-                mark = ' ↑' if low > 0 else ' ↓' if high < 0 else ''
-                cells.append(f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]{mark}')
+            run = f'policy_{mode}'
+            cells = _means(by, run, seeds) + [f'{_returns(by, run, seeds, mode).mean():.3f}']
+            cells += [_paired(by, run, other, seeds, mode) for other in (best[mode], 'sumo')]
             lines.append(f'| {mode} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
+
+
+#: the README's results table: what each row is called there, and its columns (name, metric, format)
+README_DRIVERS = {'policy': 'the shipped policy', 'best': 'the best fixed driver', 'neutral': 'the neutral driver',
+                  'sumo': "SUMO's drivers"}
+README_COLUMNS = (('Exit-1', 'p_CAV', '.3f'), ('CAV collisions', 'p_collision_CAV', '.4f'), ('speed [m/s]', 'v_AVs', '.2f'),
+                  ('time headway [s]', 'headway_CAV', '.2f'), ('hard brakings', 'N_braking', '.2f'))
+
+
+def readme_table(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral')) -> str:
+    """The README's results table: per mode, the policy (when the rows hold it), the best fixed
+    driver, the neutral driver and SUMO's drivers, with their means and the return's paired
+    difference to the neutral driver."""
+    by, seeds = _by_run_and_seed(rows, variant, neutral)
+    best = best_fixed_drivers(by, seeds, modes)
+    lines = ['| mode | driver | ' + ' | '.join(name for name, _, _ in README_COLUMNS) + ' | return − neutral driver [95%] |',
+             '|---' * (3 + len(README_COLUMNS)) + '|']
+    for mode in modes:
+        runs = {'policy': f'policy_{mode}', 'best': best[mode], 'neutral': neutral, 'sumo': 'sumo'}
+        for role, run in runs.items():
+            if (run, seeds[0]) not in by:
+                continue
+            label = README_DRIVERS[role] + (f' (`{run.removeprefix("option_")}`)' if role == 'best' else '')
+            cells = [format(np.nanmean([float(by[(run, s)][metric]) for s in seeds]), spec) for _, metric, spec in README_COLUMNS]
+            difference = '—' if run == neutral else _paired(by, run, neutral, seeds, mode)
+            lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + f' | {difference} |')
+    return '\n'.join(lines + ['', f'{len(seeds)} test seeds, reward variant `{variant}`; ↑ / ↓: the interval excludes 0. '
+                               + _verdict(by, seeds, modes, best)])
+
+
+def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str]) -> str:
+    """One plain sentence: where the policy's return stands against the best fixed driver's and
+    SUMO's drivers', mode by mode."""
+    if (f'policy_{modes[0]}', seeds[0]) not in by:
+        return 'No policy in these rows: they are the drivers a learned policy must beat.'
+    words = {'↑': 'above', '↓': 'below', '': 'not resolved against'}
+    parts = []
+    for other, name in (('best', 'the best fixed driver'), ('sumo', "SUMO's drivers")):
+        verdicts = {}
+        for mode in modes:
+            text = _paired(by, f'policy_{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
+            verdicts.setdefault(words[text[-1] if text[-1] in '↑↓' else ''], []).append(mode)
+        parts.append(f'{name}: ' + '; '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
+    return "The shipped policy's return against " + ', and against '.join(parts) + '.'
 
 
 def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,
