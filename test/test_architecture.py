@@ -82,20 +82,13 @@ def test_the_rules_catch_what_they_forbid(tmp_path):
 
 
 MAX_LINES = 600
-#: modules still over MAX_LINES, to split, with their length when listed: they may not grow, and
-#: one back under the limit leaves the list
-TOO_LONG = {'config.py': 636}   # options' route deadlines (issue 28) added 4: split it next
 
 
 @pytest.mark.parametrize('module, path', list(modules()), ids=[m for m, _ in modules()])
 def test_each_module_is_short_and_says_its_job(module, path):
     source = path.read_text(encoding='utf-8')
-    lines, name = len(source.splitlines()), path.relative_to(PACKAGE).as_posix()
-    if name in TOO_LONG:
-        assert MAX_LINES < lines <= TOO_LONG[name], \
-            f'{path}: {lines} lines, listed in TOO_LONG at {TOO_LONG[name]}: split it, or take it off the list'
-    else:
-        assert lines <= MAX_LINES, f'{path}: {lines} lines (at most {MAX_LINES}): split it by job'
+    lines = len(source.splitlines())
+    assert lines <= MAX_LINES, f'{path}: {lines} lines (at most {MAX_LINES}): split it by job'
     assert (ast.get_docstring(ast.parse(source)) or '').strip(), f'{path}: no docstring saying what the module is for'
 
 
