@@ -269,3 +269,37 @@ def test_report_writes_the_readme_table_between_its_markers_and_refuses_a_readme
     readme.write_text('# no markers\n')
     with pytest.raises(UsageError, match='README.md: needs the lines'):
         write_readme_table(readme, '| new |', 'x')
+
+
+def test_a_policy_driver_over_options_runs_the_network_only_when_a_cav_begins_an_option(tmp_path):
+    from exit_decision.config import default_config_dir
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.model.driving import PolicyDriver
+    from exit_decision.model.modes import ModeWeights
+    from exit_decision.model.policy import load_controller
+    from ros_helpers import random_policies
+
+    config = load_project()
+    policy = random_policies(default_config_dir(), tmp_path, modes=()) / 'mdgqn_options_conditioned' / 'policy.pt'
+    env = ExitDecisionEnv(config, action_space='options')
+    try:
+        env.reset(seed=5)
+        route = env.options.index('route', 'neutral')
+        while not env.graph.cav_ids():
+            env.step(np.full(env.graph.num_nodes, route))
+        controller = load_controller(config, policy, env.shield, env.planner, action_spaces=('options',))
+        forward = controller.policy.q_values
+        calls = []
+        controller.policy.q_values = lambda *args: calls.append(1) or forward(*args)
+        driver = PolicyDriver(controller, config)
+        weights = ModeWeights(config).weights('AGGP')
+        driver.decide(env.graph, env.sim.snapshot, weights, 0.0)
+        assert len(calls) == 1 and set(driver.executor.held) == set(env.graph.cav_ids()), \
+            'the first decision begins every CAV an option'
+        driver.decide(env.graph, env.sim.snapshot, weights, 0.5)
+        assert len(calls) == 1, 'every option is held: no forward pass'
+        driver.reset()
+        driver.decide(env.graph, env.sim.snapshot, weights, 0.5)
+        assert len(calls) == 2
+    finally:
+        env.close()

@@ -201,10 +201,17 @@ class PolicyController:
     def option_chooser(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
                        weights: np.ndarray | None = None) -> Callable[[VehicleState, np.ndarray], int]:
         """A policy over options at one decision: ``chooser(vehicle, mask)`` gives the allowed
-        option of highest Q value of the vehicle's row (for ``agents.options.OptionExecutor``)."""
-        q = self.policy.q_values(graph, snapshot, self.network_weights(weights))
-        row_of = graph.row_of()
-        return lambda vehicle, mask: int(np.where(mask, q[row_of[vehicle.vehicle_id]], -np.inf).argmax())
+        option of highest Q value of the vehicle's row (for ``agents.options.OptionExecutor``).
+        The weights are checked now; the forward pass runs at the first call, so a decision at
+        which every CAV holds its option costs none."""
+        network_weights = self.network_weights(weights)
+        first: dict = {}   # the Q values and each vehicle's row, from the first call
+
+        def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
+            if not first:
+                first.update(q=self.policy.q_values(graph, snapshot, network_weights), row_of=graph.row_of())
+            return int(np.where(mask, first['q'][first['row_of'][vehicle.vehicle_id]], -np.inf).argmax())
+        return choose
 
     def at(self, weights: np.ndarray | None) -> PolicyAt:
         """This policy deciding for ``weights`` only, as a driver decides (refused now, not at
