@@ -1,4 +1,4 @@
-"""The discrete joint action of one CAV: (lane change) x (acceleration) (SPEC section 3).
+"""The discrete joint action of one CAV: (lane change) x (acceleration) (paper 000, Section 2.3).
 
 Index = lane_change_index * len(accelerations) + acceleration_index. The default grid is
 {right, keep, left} x [-8, 5] m/s^2 at 0.5 m/s^2 = 3 x 27 = 81 actions.

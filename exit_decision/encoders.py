@@ -1,4 +1,5 @@
-"""State encoders: what each method's network sees of the traffic (issue 11, SPEC section 7).
+"""State encoders: what each method's network sees of the traffic (issue 11; docs/design.md,
+"The other papers' methods").
 
 Every encoder maps the graph of ``exit_decision.graph`` (its slots, CAV mask and adjacency
 unchanged) and the step's vehicle states to per-row features, so replay, the agent loop, the

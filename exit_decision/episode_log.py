@@ -1,4 +1,4 @@
-"""One episode's log and its metrics (SPEC section 6; paper 000, Section 5.2).
+"""One episode's log and its metrics (paper 000, Section 5.2; defined below).
 
 ``EpisodeLog.record`` takes each step's result and its reward vector (the return is the
 vectors' sum scored under ``reward_weights``, the env's mode, by linearity); ``EpisodeLog.metrics`` gives: v_AVs and v_s (mean speed over CAV-steps / all

@@ -1,4 +1,4 @@
-"""Vehicle states -> the graph the policy sees (SPEC section 2). The only graph builder.
+"""Vehicle states -> the graph the policy sees (paper 000, Section 2.2). The only graph builder.
 
 Training, evaluation and the ROS graph-builder node all call ``GraphBuilder.build`` so a
 policy sees in ROS exactly what it saw in training.
@@ -13,9 +13,9 @@ policy sees in ROS exactly what it saw in training.
   (``VehicleState.controlled``): a CAV released to SUMO's driver after a missed exit is a
   human-driven vehicle from then on.
 
-The ``relative`` feature set (ours, SPEC section 4) adds, for the lane to the right, the own
-lane and the lane to the left: the bumper gap to the leader and to the follower (/ 50 m,
-capped at 1; a lane that does not exist has gap 0) and their speed relative to the vehicle
+The ``relative`` feature set (ours; docs/design.md, "Graph") adds, for the lane to the right,
+the own lane and the lane to the left: the bumper gap to the leader and to the follower
+(/ 50 m, capped at 1; a lane that does not exist has gap 0) and their speed relative to the vehicle
 (/ 10 m/s, clipped to [-1, 1]). The paper's absolute positions cannot resolve gaps.
 """
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The reward function matrix of paper 000 (Section 4; SPEC section 5) and the baseline reward.
+"""The reward function matrix of paper 000 (Section 4; ours: docs/design.md, "Reward") and the
+baseline reward.
 
 r = tr(A_k1 A_k2 A_r^T): A_k1 = diag(k_result, k_efficiency, k_comfort, k_safety) (the mode's
 decision weights), A_k2 = [[k_iI, k_iP]] (incentive / punishment weights, the incentive ones

@@ -1,4 +1,4 @@
-"""The graph builder on hand-made traffic (SPEC section 2)."""
+"""The graph builder on hand-made traffic (paper 000, Section 2.2; docs/design.md, "Graph")."""
 import numpy as np
 import pytest
 

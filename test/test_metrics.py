@@ -1,4 +1,4 @@
-"""SPEC section 6 metrics from a hand-made episode log."""
+"""The episode metrics (defined in exit_decision/episode_log.py) from a hand-made episode log."""
 import math
 
 import numpy as np

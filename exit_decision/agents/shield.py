@@ -1,4 +1,4 @@
-"""Action masks that are also the runtime safety shield (SPEC section 4).
+"""Action masks that are also the runtime safety shield (ours; docs/design.md, "Safety shield").
 
 The same masks run in training, evaluation and the decision node, from vehicle states only.
 For one decision, CAVs are taken front to back; each gets a mask over the action grid and

@@ -1,5 +1,6 @@
-"""Commands that run the scenario and evaluate: ``run`` (episodes of the scenario, the SPEC
-section 6 metrics) and ``evaluate`` (policies and the reference drivers on fixed seeds)."""
+"""Commands that run the scenario and evaluate: ``run`` (episodes of the scenario, the episode
+metrics of ``exit_decision.episode_log``) and ``evaluate`` (policies and the reference drivers on
+fixed seeds)."""
 from __future__ import annotations
 
 import argparse
@@ -13,7 +14,7 @@ from exit_decision.errors import UsageError
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Run episodes of the scenario and print the SPEC section 6 metrics."""
+    """Run episodes of the scenario and print the episode metrics (``exit_decision.episode_log``)."""
     import numpy as np
 
     from exit_decision.env import ExitDecisionEnv

@@ -1,1 +1,1 @@
-"""Evaluation: episode metrics (SPEC section 6), evaluation runs and plots."""
+"""Evaluation: episode metrics (defined in ``exit_decision.episode_log``), evaluation runs and plots."""

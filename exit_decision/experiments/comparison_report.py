@@ -2,13 +2,14 @@
 
 A learned method trained with several seeds is one row: its episodes on each test seed are
 averaged over the training seeds first, so every interval is over test seeds (the same ones
-for every method, which makes the differences paired). Per variant: the metrics of SPEC
-section 6 (mean with 95% interval), each method against the neutral teacher under every
-mode, then the papers' claims as paired differences under the training mode, each said to
-hold, fail or stay unresolved by its interval; each method's drop from the base scenario;
-the learning curves of all learned methods on one figure, against the RL decisions taken
-(the budget's unit), the rows with our measures and the as-published ones in two panels (the
-teacher's validation return as a line), and their training wall time per 100 episodes.
+for every method, which makes the differences paired). Per variant: the episode metrics
+(``exit_decision.episode_log``; mean with 95% interval), each method against the neutral
+teacher under every mode, then the papers' claims as paired differences under the training
+mode, each said to hold, fail or stay unresolved by its interval; each method's drop from the
+base scenario; the learning curves of all learned methods on one figure, against the RL
+decisions taken (the budget's unit), the rows with our measures and the as-published ones in
+two panels (the teacher's validation return as a line), and their training wall time per 100
+episodes.
 """
 from __future__ import annotations
 
@@ -25,8 +26,8 @@ from exit_decision.evaluation.report import SUMO, TEACHER, comparison_markdown, 
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.tables import read_rows
 
-#: SPEC section 6's metrics, each with the direction that is better (speeds: higher, as the
-#: efficiency term of every mode; collisions and braking: lower)
+#: the episode metrics (``exit_decision.episode_log``), each with the direction that is better
+#: (speeds: higher, as the efficiency term of every mode; collisions and braking: lower)
 HIGHER_IS_BETTER = {'reward': True, 'p_CAV': True, 'p_HV2': True, 'p_collision_CAV': False, 'p_collision': False,
                     'v_AVs': True, 'v_s': True, 'N_braking': False, 'braking_steps': False}
 TABLE_METRICS = tuple(HIGHER_IS_BETTER)

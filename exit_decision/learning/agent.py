@@ -1,4 +1,5 @@
-"""The Q-learning update every method shares (paper 000 Section 3; SPEC sections 4 and 7).
+"""The Q-learning update every method shares (paper 000 Section 3; docs/design.md, "Learning" and
+"The other papers' methods").
 
 Every CAV row is a Q-learner with shared weights. For a row i that acted at t, with R_i the
 row's m-step return (its own credit or the shared reward, scored under the batch element's

@@ -1,4 +1,4 @@
-"""Playing training episodes and turning them into m-step transitions (SPEC section 7).
+"""Playing training episodes and turning them into m-step transitions (docs/design.md, "Learning").
 
 Per decision: the Q values of the graph (one forward for all rows), then each CAV chooses
 under the shield, front to back: epsilon-greedy, the random action biased towards keeping

@@ -1,4 +1,4 @@
-"""What the agent learns from, and the batches drawn from it (SPEC section 7).
+"""What the agent learns from, and the batches drawn from it (docs/design.md, "Learning").
 
 ``Experience`` holds the agent's own replay (uniform or proportional prioritized) and the
 demonstrations of the neutral rule-based driver; an update's batch takes a share from each

@@ -1,4 +1,5 @@
-"""Training of every learned method (SPEC sections 4 and 7), per mode or one mode-conditioned network.
+"""Training of every learned method (docs/design.md, "Learning" and "The other papers' methods"),
+per mode or one mode-conditioned network.
 
 A method (``config/training.yaml`` ``methods``: GQN, MDGQN and the other papers' baselines)
 is a state encoder (``exit_decision.encoders``), a network shape and a loss (single or

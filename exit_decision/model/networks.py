@@ -5,8 +5,8 @@ Paper 000's GQN/MDGQN: one encoder layer, a GCN layer, one head layer. Paper 001
 non-graph baselines of papers 002 / 003 (an MLP per CAV row, dueling streams for Dueling
 DQN) are other ``NetworkShape`` values of the same module.
 
-GCN layer (Kipf & Welling, SPEC eq. 5): Z = relu(D^-1/2 A D^-1/2 H W + b). The adjacency the
-graph builder makes already has self loops, so no identity is added here. Everything works
+GCN layer (Kipf & Welling; paper 000, Eq. 5): Z = relu(D^-1/2 A D^-1/2 H W + b). The adjacency
+the graph builder makes already has self loops, so no identity is added here. Everything works
 on dense batched tensors: features (B, N, F), adjacency (B, N, N). N is whatever the input
 has: nothing here depends on the road.
 

@@ -5,7 +5,7 @@ commands (lane change + acceleration), advances SUMO one step and returns the ve
 states with what happened in the step: arrivals by exit, collisions, emergency brakings.
 Same seed, same commands => same episode.
 
-Human drivers are SUMO's (IDM + LC2013) plus two rules of ours from SPEC section 1: HV2's
+Human drivers are SUMO's (IDM + LC2013) plus two rules of ours (paper 000, Section 2.1): HV2's
 opportunistic right changes, and exits chosen by the lane held at a diverge. CAVs driven
 by the policy have SUMO's safety checks switched off (speed mode 0, lane-change mode 0), so
 a bad command really collides; ``cav_driver='sumo'`` lets SUMO drive them to the target exit
@@ -69,7 +69,7 @@ class HighwaySimulation:
         self.geometry = RoadGeometry.of(scenario.road)
         self._route_file = build_routes(scenario)
         self._lanes = self.geometry.lanes
-        # the edge each class's route ends with: SPEC section 1's roles
+        # the edge each class's route ends with: paper 000's roles (Section 2.1)
         geometry, last = self.geometry, self.geometry.sections[-1]
         self._leaves_by = {'HV1': last, 'HV2': last, 'HV3': geometry.first_exit.ramp,
                            'CAV': geometry.target_exit.ramp if cav_driver == 'sumo' else last}
@@ -208,7 +208,8 @@ class HighwaySimulation:
                                               self.scenario.step_length)
 
     def _route_at_diverges(self) -> None:
-        """In the last metres before a diverge, the lane held picks the exit (SPEC section 1)."""
+        """In the last metres before a diverge, the lane held picks the exit (ours; docs/design.md,
+        "Scenario")."""
         commit = self.scenario.road.diverge_commit_distance
         exits, target = self.geometry.exits, self.geometry.target_exit
         for vehicle in self._last.vehicles:
