@@ -1,7 +1,7 @@
 """Evaluation runs: a controller (or SUMO's own drivers) on fixed seeds, metrics per episode."""
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -69,15 +69,23 @@ def run_episode(env: ExitDecisionEnv, controller: Controller | None, seed: int,
     return env.episode_log.metrics()
 
 
-def run_commands_episode(env: ExitDecisionEnv, commands_of: Callable[[ExitDecisionEnv], dict], seed: int,
-                         ) -> dict[str, float]:
-    """One episode whose CAVs get off-grid commands: ``commands_of(env)`` gives them at every
-    decision step (vehicle id -> ``CavCommand``; the options' low level)."""
+def command_steps(env: ExitDecisionEnv, commands_of: Callable[[ExitDecisionEnv], dict], seed: int) -> Iterator[dict]:
+    """Plays one episode whose CAVs get off-grid commands: ``commands_of(env)`` gives them at
+    every decision step (vehicle id -> ``CavCommand``; the options' low level); yields each
+    decision step's info (its ``step_results``: every simulation step's vehicles)."""
     env.reset(seed=seed)
     done = False
     while not done:
-        _, _, terminated, truncated, _ = env.step_commands(commands_of(env))
+        _, _, terminated, truncated, info = env.step_commands(commands_of(env))
         done = terminated or truncated
+        yield info
+
+
+def run_commands_episode(env: ExitDecisionEnv, commands_of: Callable[[ExitDecisionEnv], dict], seed: int,
+                         ) -> dict[str, float]:
+    """``command_steps``' episode played to its end: its metrics."""
+    for _ in command_steps(env, commands_of, seed):
+        pass
     return env.episode_log.metrics()
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.episode_log import HEADWAY_MIN_SPEED, HEADWAY_RANGE
+from exit_decision.evaluation.evaluate import command_steps
 from exit_decision.model.driving import PolicyDriver
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -71,18 +72,22 @@ def policy_steps(env: ExitDecisionEnv, driver: PolicyDriver, seed: int, weights:
     """The (time, vehicles) of every step of one episode in the environment (no ROS) up to
     ``until`` [s], the policy deciding for ``weights``, or from ``switch`` = (time, weights) on
     for those (every option held ends there, as in the decision node)."""
-    env.reset(seed=seed)
     driver.reset()
-    steps: Steps = [(env.sim.state.time, list(env.sim.snapshot.vehicles))]
-    done = False
-    while not done and steps[-1][0] < until:
+    steps: Steps = []
+
+    def commands_of(env: ExitDecisionEnv) -> dict:
+        nonlocal weights, switch
+        if not steps:
+            steps.append((env.sim.state.time, list(env.sim.snapshot.vehicles)))
         if switch is not None and env.sim.state.time >= switch[0] - 1e-9:
             weights, switch = switch[1], None
             driver.reset()
-        decision = driver.decide(env.graph, env.sim.snapshot, weights, env.sim.state.time)
-        _, _, terminated, truncated, info = env.step_commands(decision.commands)
+        return driver.decide(env.graph, env.sim.snapshot, weights, env.sim.state.time).commands
+
+    for info in command_steps(env, commands_of, seed):
         steps += [(result.time, result.vehicles) for result in info['step_results']]
-        done = terminated or truncated
+        if steps[-1][0] >= until:
+            break
     return steps
 
 
