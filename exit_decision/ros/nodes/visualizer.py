@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray
 from exit_decision_msgs.msg import (CavCommandArray, CavOptionArray, EpisodeEvent, ShieldOverrideArray,
@@ -101,11 +101,21 @@ class Visualizer(Node):
         self.events = self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
         # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
         self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS, raw=True)
-        self.create_subscription(CavCommandArray, COMMANDS_TOPIC, self.on_commands, STREAM_QOS)
-        self.create_subscription(TrafficGraph, GRAPH_TOPIC, self.on_graph, STREAM_QOS)
+        frames = self.frames
+
+        def draw_graph(msg: TrafficGraph) -> None:
+            graph = graph_from_msg(msg)
+            frames.graph(graph.vehicle_ids, graph.adjacency)
+
+        for kind, topic, counter, what, use in (
+                (CavCommandArray, COMMANDS_TOPIC, 'commands', 'commands',
+                 lambda msg: frames.decide(commands_from_msg(msg), msg.mode, msg.step)),
+                (TrafficGraph, GRAPH_TOPIC, 'graphs', 'graph', draw_graph),
+                (ShieldOverrideArray, OVERRIDES_TOPIC, 'shield_overrides', 'shield overrides',
+                 lambda msg: frames.shield(overrides_from_msg(msg), msg.step)),
+                (CavOptionArray, OPTIONS_TOPIC, 'options', 'options', lambda msg: frames.options(options_from_msg(msg)))):
+            self.create_subscription(kind, topic, self.of_this_episode(counter, what, use), STREAM_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
-        self.create_subscription(ShieldOverrideArray, OVERRIDES_TOPIC, self.on_overrides, STREAM_QOS)
-        self.create_subscription(CavOptionArray, OPTIONS_TOPIC, self.on_options, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
 
     def on_states(self, raw: bytes) -> None:
@@ -159,39 +169,17 @@ class Visualizer(Node):
         frame, stamp = self.last
         self.send(dataclasses.replace(frame, crashed=(), collisions=self.frames.end(msg.p_collision)), stamp)
 
-    def on_overrides(self, msg: ShieldOverrideArray) -> None:
-        if msg.episode != self.frames.episode:
-            return
-        try:
-            self.frames.shield(overrides_from_msg(msg), msg.step)
-        except MessageError as error:
-            self.diagnostics.reject('shield_overrides', f'shield overrides of step {msg.step}', str(error))
-
-    def on_options(self, msg: CavOptionArray) -> None:
-        if msg.episode != self.frames.episode:
-            return
-        try:
-            self.frames.options(options_from_msg(msg))
-        except MessageError as error:
-            self.diagnostics.reject('options', f'options of step {msg.step}', str(error))
-
-    def on_commands(self, msg: CavCommandArray) -> None:
-        if msg.episode != self.frames.episode:
-            return
-        try:
-            self.frames.decide(commands_from_msg(msg), msg.mode, msg.step)
-        except MessageError as error:
-            self.diagnostics.reject('commands', f'commands of step {msg.step}', str(error))
-
-    def on_graph(self, msg: TrafficGraph) -> None:
-        if msg.episode != self.frames.episode:
-            return
-        try:
-            graph = graph_from_msg(msg)
-        except MessageError as error:
-            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
-            return
-        self.frames.graph(graph.vehicle_ids, graph.adjacency)
+    def of_this_episode(self, counter: str, what: str, use: Callable[[object], None]) -> Callable[[object], None]:
+        """A subscription's callback: ``use(msg)`` for a message of the episode drawn; one that does
+        not fit the scenario is counted under ``counter`` and changes nothing."""
+        def callback(msg) -> None:
+            if msg.episode != self.frames.episode:
+                return
+            try:
+                use(msg)
+            except MessageError as error:
+                self.diagnostics.reject(counter, f'{what} of step {msg.step}', str(error))
+        return callback
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
