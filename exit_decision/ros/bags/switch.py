@@ -28,19 +28,23 @@ class RecordedSwitch:
 def recorded_switch(bag: Path, config: ProjectConfig) -> RecordedSwitch | None:
     """The first mode switch in ``bag`` (None if its decisions keep one mode); BagError if it
     cannot be read."""
-    switch, previous = None, None
-    for _, _, _, msg in read_messages(bag, {COMMANDS_TOPIC}):
-        if previous is not None and msg.episode == previous.episode and msg.mode != previous.mode:
-            switch = (msg.episode, msg.step, previous.mode, msg.mode)
-            break
-        previous = msg
+    dt, sections = config.scenario.step_length, config.scenario.road.names.sections
+    switch, previous, episode, steps = None, None, None, []   # steps: the states of the episode read now
+    for topic, _, _, msg in read_messages(bag, {COMMANDS_TOPIC, STATES_TOPIC}):
+        if topic == STATES_TOPIC:
+            if msg.episode != episode:
+                if switch is not None:
+                    break                      # the switch's episode is over
+                episode, steps = msg.episode, []
+            steps.append((msg.step * dt, states_from_msg(msg, sections)))
+        elif switch is None:
+            if previous is not None and msg.episode == previous.episode and msg.mode != previous.mode:
+                switch = (msg.episode, msg.step, previous.mode, msg.mode)
+            previous = msg
     if switch is None:
         return None
-    episode, step, before, after = switch
-    dt, sections = config.scenario.step_length, config.scenario.road.names.sections
-    steps = [(msg.step * dt, states_from_msg(msg, sections))
-             for _, _, _, msg in read_messages(bag, {STATES_TOPIC}) if msg.episode == episode]
-    return RecordedSwitch(episode, step, step * dt, before, after, steps)
+    switched_in, step, before, after = switch
+    return RecordedSwitch(switched_in, step, step * dt, before, after, steps if episode == switched_in else [])
 
 
 def switch_report(bag: Path, config: ProjectConfig, policy_dir: Path, algorithm: str, seed: int,
