@@ -195,8 +195,8 @@ def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo
     rows = [row(run, seed, aggi + seed * seed, coni + seed, speed) for seed in (1, 2, 3)
             for run, aggi, coni, speed in [('option_neutral', 10, 10, 15), ('option_close', 11, 9, 16),
                                            ('option_calm', 8, 12, 14), ('sumo', 9, 9, 15),
-                                           ('policy_AGGI', 12, 0, 17), ('policy_CONI', 0, 13, 13)]]
-    lines = readme_table(rows, ['AGGI', 'CONI'], 'v').splitlines()
+                                           ('shipped@AGGI', 12, 0, 17), ('shipped@CONI', 0, 13, 13)]]
+    lines = readme_table(rows, ['AGGI', 'CONI'], 'v', 'shipped').splitlines()
     aggi = [line for line in lines if line.startswith('| AGGI |')]
     assert [line.split(' | ')[1] for line in aggi] == [
         'the shipped policy', 'the best fixed driver (`close`)', 'the neutral driver', "SUMO's drivers"]
@@ -206,7 +206,7 @@ def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo
     assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ |')
     assert lines[-1].endswith("The shipped policy's return against the best fixed driver: above under AGGI, CONI, and "
                               "against SUMO's drivers: above under AGGI, CONI.")
-    assert len(readme_table([r for r in rows if not r['run'].startswith('policy_')], ['AGGI'], 'v').splitlines()) == 2 + 3 + 2
+    assert len(readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped').splitlines()) == 2 + 3 + 2
 
 
 def test_the_env_over_options_reads_only_the_choosing_rows(project_config):

@@ -144,8 +144,9 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
     assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_conditioned_AGGI']['p_CAV'][0] <= 1.0
     from exit_decision.experiments.constant_options import run_table, table_markdown
     variant = config.env.reward_variant
-    text = table_markdown(run_table(config, [10_000, 10_001], [variant], 1, policy_path), ['AGGI', 'CONP'], variant)
-    assert '| policy at mode |' in text and '\n| AGGI |' in text and '\n| CONP |' in text, 'judged per mode'
+    text = table_markdown(run_table(config, [10_000, 10_001], [variant], 1, {'learned': policy_path}), ['AGGI', 'CONP'],
+                          variant)
+    assert '| policy | mode |' in text and '\n| learned | AGGI |' in text and '\n| learned | CONP |' in text, 'judged per mode'
     env = ExitDecisionEnv(config)
     try:
         with pytest.raises(PolicyError, match='a policy over options; this command runs policies over grid only'):

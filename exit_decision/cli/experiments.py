@@ -62,11 +62,17 @@ def cmd_options_table(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir, args.scenario_override, args.override)
     for variant in args.variant:
         known('--variant', variant, config.reward)
-    if args.policy is not None:
-        from exit_decision.model.policy import load_policy
-        load_policy(args.policy).check_compatible(config)
+    from exit_decision.experiments.constant_options import policy_label
+    from exit_decision.model.policy import load_policy
+    policies = {}
+    for path in args.policy:
+        load_policy(path).check_compatible(config)
+        if policy_label(path) in policies:
+            raise OptionError(f'--policy {path}: a second policy named {policy_label(path)!r}; allowed: one policy per run '
+                              f'directory and file name')
+        policies[policy_label(path)] = path
     print(write_table(config, list(range(args.seed, args.seed + args.episodes)),
-                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation, args.policy))
+                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation, policies))
     return 0
 
 
@@ -182,9 +188,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                          help='first seed (default: the validation seeds; 10000: the test seeds)')
     options.add_argument('--variant', action='append', default=[],
                          help='reward variant to score under (repeatable; default: env.yaml\'s)')
-    options.add_argument('--policy', type=checkpoint, default=None,
-                         help='a policy.pt (grid or options) to judge against the best fixed driver of each mode '
-                              'and SUMO\'s drivers on the same seeds')
+    options.add_argument('--policy', type=checkpoint, action='append', default=[],
+                         help='a policy.pt (grid or options; repeatable) to judge against the best fixed driver of '
+                              'each mode and SUMO\'s drivers on the same seeds; named by its run directory')
     options.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
     options.add_argument('--out', type=Path, default=Path('docs/results/options'))
     options.set_defaults(func=cmd_options_table)

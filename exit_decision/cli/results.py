@@ -30,7 +30,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings))
     table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
-                         config.env.reward_variant)
+                         config.env.reward_variant, DEFAULT_ALGORITHM)
     made_by = (args.options_table / 'constant_options.md').read_text(encoding='utf-8').split('`')[1]
     print(write_readme_table(args.readme, table, made_by))
     return 0

@@ -26,14 +26,28 @@ REFERENCES = ('grid_rule_based', 'sumo')
 COLUMNS = ('v_AVs', 'headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV')
 
 
+#: a policy's run at a mode is named ``<label>@<mode>``
+AT = '@'
+
+
 def option_run_name(style: str) -> str:
     return f'option_{style}'
+
+
+def policy_label(path: Path) -> str:
+    """A policy's name in the table: its run directory for a ``policy.pt``, else
+    ``<run directory>:<file>`` (a candidate, ``last.pt``)."""
+    path = Path(path)
+    if path.stem == 'policy':
+        return path.parent.name
+    run = path.parent.parent if path.parent.name == 'candidates' else path.parent
+    return f'{run.name}:{path.stem}'
 
 
 def _episode(task: tuple) -> list[dict]:
     """One run on one seed, in a worker process: a row per reward variant, with the return
     under every mode."""
-    config, run, seed, variants, policy = task
+    config, run, seed, variants, policies = task
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
     from exit_decision.evaluation.evaluate import (EvaluationResult, constant_option, run_episode, run_episodes,
@@ -42,9 +56,9 @@ def _episode(task: tuple) -> list[dict]:
     from exit_decision.model.policy import load_controller
 
     env = _worker_env(config, 'sumo' if run == 'sumo' else 'policy')
-    if run.startswith('policy_'):
-        controller = load_controller(config, policy, env.shield, env.planner, action_spaces=('grid', 'options'))
-        mode = run.removeprefix('policy_')
+    if AT in run:
+        label, mode = run.split(AT)
+        controller = load_controller(config, policies[label], env.shield, env.planner, action_spaces=('grid', 'options'))
         weights = ModeWeights(config).weights(mode) if controller.policy.conditioned else None
         played = (run_option_policy(env, controller, weights, [seed]) if controller.policy.action_space == 'options'
                   else run_episodes(env, controller.at(weights), [seed]))
@@ -77,13 +91,13 @@ def _worker_env(config: ProjectConfig, cav_driver: str):
 
 
 def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int,
-              policy: Path | None = None) -> list[dict]:
-    """The rows of every run on every seed; ``policy``: also that policy at each mode of the
-    matrix (``policy_<mode>``: a conditioned one acts at the mode's weights)."""
+              policies: dict[str, Path] | None = None) -> list[dict]:
+    """The rows of every run on every seed; ``policies`` (label -> checkpoint): also each of them
+    at each mode of the matrix (``<label>@<mode>``: a conditioned one acts at the mode's weights)."""
     runs = [option_run_name(style) for style in config.env.options.styles] + list(REFERENCES)
-    if policy is not None:
-        runs += [f'policy_{mode}' for mode in config.mode_matrix.modes]
-    tasks = [(config, run, seed, variants, policy) for run in runs for seed in seeds]
+    policies = policies or {}
+    runs += [f'{label}{AT}{mode}' for label in policies for mode in config.mode_matrix.modes]
+    tasks = [(config, run, seed, variants, policies) for run in runs for seed in seeds]
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         return [row for rows in tqdm(pool.map(_episode, tasks, chunksize=4), total=len(tasks),
                                      desc='constant options', unit='ep') for row in rows]
@@ -122,7 +136,7 @@ def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: st
     difference to the neutral option; then, per mode, the best constant option (the best fixed
     driver)."""
     by, seeds = _by_run_and_seed(rows, variant, neutral)
-    runs = [run for run in dict.fromkeys(run for run, _ in by) if not run.startswith('policy_')]
+    runs = [run for run in dict.fromkeys(run for run, _ in by) if AT not in run]
     lines = [f'### Reward variant `{variant}` ({len(seeds)} seeds)', '', '| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
              + ' |', '|---' * (1 + len(COLUMNS) + len(modes)) + '|']
     for run in runs:
@@ -132,14 +146,15 @@ def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: st
     best = best_fixed_drivers(by, seeds, modes)
     lines += ['', 'The best fixed driver (the best constant option) per mode: '
               + ', '.join(f'{mode} `{run}` ({_returns(by, run, seeds, mode).mean():.3f})' for mode, run in best.items()) + '.']
-    if any((f'policy_{mode}', seeds[0]) in by for mode in modes):
-        lines += ['', '| policy at mode | ' + ' | '.join(COLUMNS) + ' | return | − the best fixed driver | − SUMO\'s drivers |',
-                  '|---' * (4 + len(COLUMNS)) + '|']
-        for mode in modes:
-            run = f'policy_{mode}'
+    labels = list(dict.fromkeys(run.split(AT)[0] for run, _ in by if AT in run))
+    if labels:
+        lines += ['', '| policy | mode | ' + ' | '.join(COLUMNS) + ' | return | − the best fixed driver | − SUMO\'s drivers |',
+                  '|---' * (5 + len(COLUMNS)) + '|']
+        for label, mode in ((label, mode) for label in labels for mode in modes):
+            run = f'{label}{AT}{mode}'
             cells = _means(by, run, seeds) + [f'{_returns(by, run, seeds, mode).mean():.3f}']
             cells += [_paired(by, run, other, seeds, mode) for other in (best[mode], 'sumo')]
-            lines.append(f'| {mode} | ' + ' | '.join(cells) + ' |')
+            lines.append(f'| {label} | {mode} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 
 
@@ -150,16 +165,17 @@ README_COLUMNS = (('Exit-1', 'p_CAV', '.3f'), ('CAV collisions', 'p_collision_CA
                   ('time headway [s]', 'headway_CAV', '.2f'), ('hard brakings', 'N_braking', '.2f'))
 
 
-def readme_table(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral')) -> str:
-    """The README's results table: per mode, the policy (when the rows hold it), the best fixed
-    driver, the neutral driver and SUMO's drivers, with their means and the return's paired
-    difference to the neutral driver."""
+def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str,
+                 neutral: str = option_run_name('neutral')) -> str:
+    """The README's results table: per mode, the policy labelled ``policy`` (when the rows hold
+    it), the best fixed driver, the neutral driver and SUMO's drivers, with their means and the
+    return's paired difference to the neutral driver."""
     by, seeds = _by_run_and_seed(rows, variant, neutral)
     best = best_fixed_drivers(by, seeds, modes)
     lines = ['| mode | driver | ' + ' | '.join(name for name, _, _ in README_COLUMNS) + ' | return − neutral driver [95%] |',
              '|---' * (3 + len(README_COLUMNS)) + '|']
     for mode in modes:
-        runs = {'policy': f'policy_{mode}', 'best': best[mode], 'neutral': neutral, 'sumo': 'sumo'}
+        runs = {'policy': f'{policy}{AT}{mode}', 'best': best[mode], 'neutral': neutral, 'sumo': 'sumo'}
         for role, run in runs.items():
             if (run, seeds[0]) not in by:
                 continue
@@ -168,31 +184,31 @@ def readme_table(rows: list[dict], modes: list[str], variant: str, neutral: str 
             difference = '—' if run == neutral else _paired(by, run, neutral, seeds, mode)
             lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + f' | {difference} |')
     return '\n'.join(lines + ['', f'{len(seeds)} test seeds, reward variant `{variant}`; ↑ / ↓: the interval excludes 0. '
-                               + _verdict(by, seeds, modes, best)])
+                               + _verdict(by, seeds, modes, best, policy)])
 
 
-def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str]) -> str:
+def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str], policy: str) -> str:
     """One plain sentence: where the policy's return stands against the best fixed driver's and
     SUMO's drivers', mode by mode."""
-    if (f'policy_{modes[0]}', seeds[0]) not in by:
+    if (f'{policy}{AT}{modes[0]}', seeds[0]) not in by:
         return 'No policy in these rows: they are the drivers a learned policy must beat.'
     words = {'↑': 'above', '↓': 'below', '': 'not resolved against'}
     parts = []
     for other, name in (('best', 'the best fixed driver'), ('sumo', "SUMO's drivers")):
         verdicts = {}
         for mode in modes:
-            text = _paired(by, f'policy_{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
+            text = _paired(by, f'{policy}{AT}{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
             verdicts.setdefault(words[text[-1] if text[-1] in '↑↓' else ''], []).append(mode)
         parts.append(f'{name}: ' + '; '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
     return "The shipped policy's return against " + ', and against '.join(parts) + '.'
 
 
 def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,
-                command: str, policy: Path | None = None) -> str:
+                command: str, policies: dict[str, Path] | None = None) -> str:
     """Runs the table and writes ``constant_options.csv`` (per episode and reward variant) and
-    ``.md`` into ``out_dir``; with a ``policy``, its runs at each mode against the best fixed
-    driver of that mode and SUMO's drivers, paired on the same seeds."""
-    rows = run_table(config, seeds, variants, jobs, policy)
+    ``.md`` into ``out_dir``; with ``policies`` (label -> checkpoint), their runs at each mode
+    against the best fixed driver of that mode and SUMO's drivers, paired on the same seeds."""
+    rows = run_table(config, seeds, variants, jobs, policies)
     write_rows(out_dir / 'constant_options.csv', rows)
     text = (f'# Constant options and the references, scored under every mode\n\nMade by `{command}` (seeds '
             f'{seeds[0]}..{seeds[-1]}); per-episode rows in '
