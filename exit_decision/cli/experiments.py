@@ -78,9 +78,12 @@ def cmd_options_table(args: argparse.Namespace) -> int:
 
 def cmd_tradeoff(args: argparse.Namespace) -> int:
     """A conditioned policy at every weight point: speed against hard braking and safety."""
-    from exit_decision.experiments.tradeoff import run_tradeoff
+    from exit_decision.experiments.tradeoff import redraw_tradeoff, run_tradeoff
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.plot_only:
+        print(redraw_tradeoff(config, args.policy, args.episodes, args.out))
+        return 0
     print(run_tradeoff(config, args.policy, list(range(args.seed, args.seed + args.episodes)), args.out))
     return 0
 
@@ -201,6 +204,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     tradeoff.add_argument('--episodes', type=COUNT, default=20, help='seeds per weight point')
     tradeoff.add_argument('--seed', type=SEED, default=40_000, help='first seed (not a test or training seed)')
     tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'))
+    tradeoff.add_argument('--plot-only', action='store_true',
+                          help='only draw tradeoff.png again from --out\'s tradeoff.csv (no simulation, no checkpoint '
+                               'read; --policy and --episodes name them in the title)')
     tradeoff.set_defaults(func=cmd_tradeoff)
 
     compare = commands.add_parser('compare', help='every method on every scenario variant (config/variants.yaml) on '

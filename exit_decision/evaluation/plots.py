@@ -3,8 +3,9 @@
 - ``training_reward.png`` (Fig. 5): episode reward during training per mode, GQN vs MDGQN.
 - ``reward_comparison.png`` (Fig. 4): reward matrix vs baseline reward, training curves of
   the same mode normalised to [0, 1] by each curve's own min and max.
-- ``test_reward.png`` (Fig. 6): test episode reward, mean with min and max, per policy.
-- ``speeds.png`` (Fig. 7): mean speed of CAVs and of all traffic per run.
+- ``test_reward.png`` (Fig. 6, as differences): per mode, each driver's test return minus the
+  neutral rule-based driver's on the same seeds, mean with its 95% interval.
+- ``speeds.png`` (Fig. 7): per mode, mean speed of CAVs and of all traffic per driver.
 - ``actions_<run>.png`` (paper 001 Fig. 20): how often each action was chosen.
 - ``validation_<run>.png``: the learning curve judged against the teacher: per validation
   mode, the candidate's mean paired return gain over the neutral rule-based teacher (the
@@ -21,9 +22,11 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from exit_decision.evaluation.statistics import paired_interval  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
 SMOOTHING = 10   # episodes in the rolling mean of training curves
+REFERENCE = 'rule_based'   # the driver test returns are drawn against (evaluation.report.TEACHER)
 
 
 def read_csv(path: Path) -> dict[str, np.ndarray]:
@@ -32,9 +35,12 @@ def read_csv(path: Path) -> dict[str, np.ndarray]:
     return {key: np.array([float(row[key]) for row in rows]) for key in rows[0]} if rows else {}
 
 
-def save(fig: plt.Figure, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+def save(fig: plt.Figure, path: Path, layout: bool = True) -> Path:
+    """The figure as a PNG, laid out (unless ``layout`` is False: the caller did) and cropped to
+    what it draws, so no label is cut."""
+    if layout:
+        fig.tight_layout()
+    fig.savefig(path, dpi=120, bbox_inches='tight', pad_inches=0.1)
     plt.close(fig)
     return path
 
@@ -127,38 +133,94 @@ def validation_curves(run_dir: Path, out: Path, exit_target: float = 0.99) -> Pa
     return save(fig, out / f'validation_{run_dir.name}.png')
 
 
-def test_reward(evaluation_dir: Path, out: Path) -> Path | None:
+def driver_and_mode(label: str, modes: set[str]) -> tuple[str, str]:
+    """``rule_based_headway_0.8_AGGI`` -> (``rule_based_headway_0.8``, ``AGGI``) when AGGI is one of
+    ``modes``; a label without a mode suffix is its own driver under mode ''."""
+    driver, _, mode = label.rpartition('_')
+    return (driver, mode) if driver and mode in modes else (label, '')
+
+
+def runs_by_mode(labels: list[str]) -> tuple[list[str], list[str]]:
+    """The modes (suffixes shared by several runs, in order) and the drivers (in order) of
+    evaluation runs named ``<driver>_<mode>``."""
+    suffixes = [label.rpartition('_')[2] for label in labels]
+    modes = [m for m in dict.fromkeys(suffixes) if suffixes.count(m) > 1] or ['']
+    drivers = list(dict.fromkeys(driver_and_mode(label, set(modes))[0] for label in labels))
+    return modes, drivers
+
+
+def mode_panels(modes: list[str], drivers: list[str], width: float = 3.2):
+    """One panel per mode, side by side, the drivers as rows (labels on the first panel only)."""
+    fig, axes = plt.subplots(1, len(modes), figsize=(width * len(modes) + 2.0, 0.45 * len(drivers) + 1.6),
+                             sharey=True, squeeze=False)
+    for ax, mode in zip(axes[0], modes):
+        ax.set_yticks(range(len(drivers)), drivers)
+        ax.set_ylim(len(drivers) - 0.5, -0.5)   # the first driver on top
+        ax.set_title(mode or 'every run', fontsize=10)
+        ax.grid(alpha=0.3, axis='x')
+    return fig, axes[0]
+
+
+def test_reward(evaluation_dir: Path, out: Path, reference: str = REFERENCE) -> Path | None:
+    """Per mode, each driver's test return minus the reference driver's on the same seeds (mean
+    and 95% interval; the reference is the line at 0, its mean return in the panel's title),
+    the axis on the differences; without the reference, each driver's return (mean, 95%)."""
     runs = evaluation_runs(evaluation_dir)
     if not runs:
         return None
-    labels = list(runs)
-    rewards = [runs[label]['reward'] for label in labels]
-    means = np.array([r.mean() for r in rewards])
-    fig, ax = plt.subplots(figsize=(max(5, 0.8 * len(labels)), 3.5))
-    ax.bar(labels, means, color='tab:blue', alpha=0.7)
-    ax.errorbar(labels, means, yerr=[means - [r.min() for r in rewards], [r.max() for r in rewards] - means],
-                fmt='none', ecolor='black', capsize=4)
-    ax.set_ylabel('test episode reward (mean, min-max)')
-    ax.tick_params(axis='x', rotation=45)
-    ax.grid(alpha=0.3, axis='y')
+    modes, drivers = runs_by_mode(list(runs))
+    label_of = {driver_and_mode(label, set(modes)): label for label in runs}
+    has_reference = all((reference, mode) in label_of for mode in modes)
+    shown = [d for d in drivers if d != reference] if has_reference else drivers
+    if not shown:
+        return None
+    fig, axes = mode_panels(modes, shown)
+    for ax, mode in zip(axes, modes):
+        theirs = {}
+        if has_reference:
+            ref = runs[label_of[reference, mode]]
+            theirs = dict(zip(ref['seed'], ref['reward']))
+            ax.axvline(0.0, color='black', lw=1.0)
+            ax.set_title(f'{mode} ({reference}: {np.mean(ref["reward"]):.2f})' if mode else
+                         f'{reference}: {np.mean(ref["reward"]):.2f}', fontsize=10)
+        for row, driver in enumerate(shown):
+            data = runs.get(label_of.get((driver, mode), ''))
+            if data is None:
+                continue
+            values = ([r - theirs[s] for s, r in zip(data['seed'], data['reward']) if s in theirs]
+                      if has_reference else data['reward'])
+            mean, low, high = paired_interval(values)
+            if np.isfinite(low):
+                ax.plot([low, high], [row, row], color='tab:blue', lw=2.5, solid_capstyle='butt')
+            ax.plot(mean, row, 'o', color='tab:blue')
+        ax.set_xlabel(f'return − {reference} (paired)' if has_reference else 'test episode return')
+        ax.margins(x=0.15)
+    fig.suptitle('test episodes: mean with 95% interval over the seeds'
+                 + (f'; 0 = the {reference} driver on the same seeds' if has_reference else ''), fontsize=10)
     return save(fig, out / 'test_reward.png')
 
 
 def speeds(evaluation_dir: Path, out: Path) -> Path | None:
+    """Per mode, each driver's mean speed of the CAVs and of all vehicles (mean over episodes,
+    ± one standard deviation), the axis on the speeds."""
     runs = evaluation_runs(evaluation_dir)
     if not runs:
         return None
-    labels = list(runs)
-    x = np.arange(len(labels))
-    fig, ax = plt.subplots(figsize=(max(5, 0.8 * len(labels)), 3.5))
-    for offset, (key, name) in zip((-0.2, 0.2), (('v_AVs', 'CAVs'), ('v_s', 'all vehicles'))):
-        values = [runs[label][key] for label in labels]
-        ax.bar(x + offset, [v.mean() for v in values], 0.4, yerr=[v.std() for v in values], capsize=3, label=name)
-    ax.set_xticks(x, labels, rotation=45)
-    ax.set_ylabel('mean speed [m/s]')
-    ax.legend()
-    ax.grid(alpha=0.3, axis='y')
-    return save(fig, out / 'speeds.png')
+    modes, drivers = runs_by_mode(list(runs))
+    label_of = {driver_and_mode(label, set(modes)): label for label in runs}
+    fig, axes = mode_panels(modes, drivers)
+    for ax, mode in zip(axes, modes):
+        for offset, (key, name, colour) in zip((-0.15, 0.15), (('v_AVs', 'CAVs', 'tab:blue'),
+                                                                ('v_s', 'all vehicles', 'tab:orange'))):
+            rows = [(row, runs[label_of[driver, mode]][key]) for row, driver in enumerate(drivers)
+                    if (driver, mode) in label_of]
+            ax.errorbar([v.mean() for _, v in rows], [row + offset for row, _ in rows],
+                        xerr=[v.std() for _, v in rows], fmt='o', capsize=3, color=colour, label=name)
+        ax.set_xlabel('mean speed [m/s], ± sd over episodes')
+    axes[0].figure.legend(*axes[0].get_legend_handles_labels(), loc='upper center', ncol=2, fontsize=9,
+                          frameon=False, bbox_to_anchor=(0.5, 1.0))
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
+    return save(fig, out / 'speeds.png', layout=False)
 
 
 def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:

@@ -6,10 +6,11 @@ for every method, which makes the differences paired). Per variant: the episode 
 (``exit_decision.episode_log``; mean with 95% interval), each method against the neutral
 teacher under every mode, then the papers' claims as paired differences under the training
 mode, each said to hold, fail or stay unresolved by its interval; each method's drop from the
-base scenario; the learning curves of all learned methods on one figure, against the RL
-decisions taken (the budget's unit), the rows with our measures and the as-published ones in
-two panels (the teacher's validation return as a line), and their training wall time per 100
-episodes.
+base scenario; the learning curves of all learned methods on one figure (the greedy validation
+return, the return the tables give), against the RL decisions taken (the budget's unit), the
+rows with our measures and the as-published ones in two panels (the teacher's validation return
+as a line), and their training wall time per 100 episodes; every method's return on every
+variant as its paired difference from the teacher's.
 """
 from __future__ import annotations
 
@@ -202,48 +203,99 @@ def stacked_panels(count: int, width: float, sharex: bool = False):
 
 
 CURVE_GRID = 200   # points of the common grid of decisions a method's seeds are averaged on
+DODGE = 0.006      # sideways shift of each method's points, a share of the decisions axis, so bars do not hide
 
 
-def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path) -> Path | None:
-    """Every learned method's training return (under the matrix's reward, whatever it learns
-    from) against the RL decisions it has taken (the unit of the budget; methods' episodes
-    differ in length), mean over its seeds on a common grid of decisions, rolling mean over a
-    tenth of it (plotted at each window's end); the rows with our measures and the as-published
-    ones in a panel each (their returns are far apart), a method and its published row in one
-    colour; the teacher's validation return as a line."""
+def validation_points(run_dir: Path, mode: str | None) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """One run's validated candidates: the RL decisions taken at each (0: the pre-trained
+    network), its greedy return on the validation seeds under ``mode`` (default: the first mode
+    validated) and the teacher's return there; None without a validation log."""
+    path, training = run_dir / 'validation.csv', run_dir / 'training.csv'
+    rows = read_rows(path) if path.is_file() else []
+    if not rows or 'return' not in rows[0]:
+        return None
+    mode = mode if any(row['mode'] == mode for row in rows) else rows[0]['mode']
+    by_episode = {int(row['episode']): row for row in rows if row['mode'] == mode}   # a re-validation: the last
+    curve = read_csv(training) if training.is_file() else {}
+    after = dict(zip(curve.get('episode', ()), curve.get('decisions', ())))   # decisions after each episode
+    episodes = [e for e in sorted(by_episode) if e == 0 or e - 1 in after]
+    if not episodes:
+        return None
+    return (np.array([after[e - 1] if e else 0.0 for e in episodes]),
+            np.array([float(by_episode[e]['return']) for e in episodes]),
+            float(np.mean([float(row['teacher_return']) for row in by_episode.values()])))
+
+
+def training_curve(training_dir: Path, run_names: list[str]) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The exploring training episodes' return (for runs without a validation log): mean over the
+    seeds on a common grid of decisions, rolling mean over a tenth of it (at each window's end)."""
+    curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
+              if (training_dir / name / 'training.csv').is_file()]
+    curves = [increasing_decisions(c) for c in curves if len(c.get('reward', ())) > 1]
+    if not curves:
+        return None
+    grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves), CURVE_GRID)
+    smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0),
+                       CURVE_GRID // 10)
+    return grid[len(grid) - len(smoothed):], smoothed, len(curves)
+
+
+def learning_curves(training_dir: Path, learned: dict[str, list[str]], out: Path,
+                    mode: str | None = None) -> Path | None:
+    """Every learned method's greedy validation return under ``mode`` (the training mode: the
+    return the tables give, there on the test seeds) at each validated candidate, against the RL
+    decisions taken by then (the unit of the budget; methods' episodes differ in length): at the
+    k-th candidate of every seed, the mean over the seeds with their min to max as a bar; a
+    method whose runs logged no validation shows its exploring training return instead (said in
+    its label). The rows with our measures and the as-published ones in a panel each (their
+    returns are far apart), a method and its published row in one colour; the teacher's
+    validation return as a line."""
     colours = plt.get_cmap('tab10').colors
     bases = list(dict.fromkeys(method.removesuffix(PUBLISHED_SUFFIX) for method in learned))
-    panels: dict[bool, list[tuple[str, int, np.ndarray, np.ndarray]]] = {}
+    panels: dict[bool, list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray | None]]] = {}
     teacher = []
     for method, run_names in learned.items():
-        curves = [read_csv(training_dir / name / 'training.csv') for name in run_names
-                  if (training_dir / name / 'training.csv').is_file()]
-        curves = [increasing_decisions(c) for c in curves if len(c.get('reward', ())) > 1]
-        if not curves:
+        base = bases.index(method.removesuffix(PUBLISHED_SUFFIX))
+        validated = [validation_points(training_dir / name, mode) for name in run_names]
+        validated = [points for points in validated if points is not None]
+        if validated and len(validated) == len([n for n in run_names if (training_dir / n).is_dir()]):
+            count = min(len(x) for x, _, _ in validated)
+            x = np.mean([x[:count] for x, _, _ in validated], axis=0)
+            returns = np.array([y[:count] for _, y, _ in validated])
+            spread = np.array([returns.mean(axis=0) - returns.min(axis=0), returns.max(axis=0) - returns.mean(axis=0)])
+            panels.setdefault(is_published(method), []).append(
+                (f'{method} ({len(validated)} seeds)', base, x, returns.mean(axis=0), spread))
+            teacher += [t for _, _, t in validated]
             continue
-        grid = np.linspace(max(c['decisions'][0] for c in curves), min(c['decisions'][-1] for c in curves),
-                           CURVE_GRID)
-        smoothed = rolling(np.mean([np.interp(grid, c['decisions'], c['reward']) for c in curves], axis=0),
-                           CURVE_GRID // 10)
-        panels.setdefault(is_published(method), []).append(
-            (f'{method} ({len(curves)} seeds)', bases.index(method.removesuffix(PUBLISHED_SUFFIX)),
-             grid[len(grid) - len(smoothed):], smoothed))
-        validations = [training_dir / name / 'validation.csv' for name in run_names]
-        teacher += [float(r['teacher_return']) for path in validations if path.is_file() for r in read_rows(path)]
+        curve = training_curve(training_dir, run_names)
+        if curve is not None:
+            x, y, seeds = curve
+            panels.setdefault(is_published(method), []).append(
+                (f'{method} ({seeds} seeds; exploring training return, no validation log)', base, x, y, None))
     if not panels:
         return None
     fig, axes = stacked_panels(len(panels), 10, sharex=True)
+    right = max(float(x[-1]) for rows in panels.values() for _, _, x, _, _ in rows)
     for ax, published in zip(axes, sorted(panels)):
-        for label, base, x, y in panels[published]:
-            ax.plot(x, y, color=colours[base % len(colours)], linestyle=('-', '--', ':')[base // len(colours) % 3],
-                    label=label)
+        rows = panels[published]
+        for i, (label, base, x, y, spread) in enumerate(rows):
+            style = dict(color=colours[base % len(colours)], linestyle=('-', '--', ':')[base // len(colours) % 3],
+                         label=label)
+            if spread is None:
+                ax.plot(x, y, **style)
+            else:
+                ax.errorbar(x + (i - (len(rows) - 1) / 2) * DODGE * right, y, yerr=spread, marker='o', ms=4,
+                            capsize=2, lw=1.2, **style)
         if teacher:
             ax.axhline(float(np.mean(teacher)), color='black', linestyle=':', label='teacher (validation seeds)')
         ax.set_title('as published (learning from its paper\'s reward)' if published else 'with our measures',
                      fontsize=9)
-        ax.set_ylabel('episode return, training mode')
+        ax.set_ylabel(f'validation return{f" under {mode}" if mode else ""}\n(greedy, as in the tables)')
+        ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
-    axes[-1].set_xlabel('RL decisions (after pre-training)')
+    axes[-1].set_xlabel('RL decisions taken (0 = the pre-trained network)')
+    fig.suptitle('Greedy return on the validation seeds at each validated candidate: mean over the training seeds, '
+                 'bars min to max\n(the tables: each run\'s best-scoring candidate on the test seeds)', fontsize=9)
     return save(fig, out)
 
 
@@ -256,32 +308,47 @@ def increasing_decisions(curve: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def variant_figure(per_variant: dict[str, dict[str, dict[str, list[dict[str, float]]]]], mode: str,
-                   out: Path) -> Path | None:
-    """Return under the training mode per method across the variants, with 95% intervals: the
-    reference drivers and the rows with our measures in one panel, the as-published rows (two
-    orders of magnitude below) in another; 20 colours."""
+                   out: Path, reference: str = TEACHER) -> Path | None:
+    """Per method across the variants, its return under the training mode minus the reference
+    driver's (the neutral teacher) on the same test seeds, mean with its 95% interval, the axis
+    on the differences and the teacher the line at 0 (its return per variant under the tick);
+    without the reference on every variant, the returns themselves. The reference drivers and
+    the rows with our measures in one panel, the as-published rows (two orders of magnitude
+    below) in another; 10 colours, 20 for more methods."""
     variants = list(per_variant)
-    methods = sorted({m for runs in per_variant.values() for m in runs})
+    paired = all(mode in per_variant[v].get(reference, {}) for v in variants)
+    methods = sorted({m for runs in per_variant.values() for m in runs if not (paired and m == reference)})
     groups = [group for group in ([m for m in methods if not is_published(m)], [m for m in methods if is_published(m)])
               if group]
     if not groups:
         return None
-    colours = plt.get_cmap('tab20').colors
     fig, axes = stacked_panels(len(groups), 11)
+    ticks = [f'{v}\n({reference} {np.mean([e["reward"] for e in per_variant[v][reference][mode]]):.2f})'
+             if paired else v for v in variants]
     for ax, group in zip(axes, groups):
         width = 0.8 / len(group)
+        colours = plt.get_cmap('tab10' if len(group) <= 10 else 'tab20').colors
         for i, method in enumerate(group):
             xs, means, errors = [], [], []
             for j, variant in enumerate(variants):
                 episodes = per_variant[variant].get(method, {}).get(mode)
                 if episodes:
-                    mean, low, _ = paired_interval([e['reward'] for e in episodes])
+                    mean, low, high = (paired_difference(episodes, per_variant[variant][reference][mode], 'reward')
+                                       if paired else paired_interval([e['reward'] for e in episodes]))
                     xs.append(j + (i - len(group) / 2 + 0.5) * width)
                     means.append(mean)
-                    errors.append(mean - low if np.isfinite(low) else 0.0)
-            ax.bar(xs, means, width, yerr=errors, label=method, capsize=2, color=colours[i % len(colours)])
-        ax.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
-        ax.set_ylabel(f'episode return under {mode}\n(95% interval)')
+                    errors.append([mean - low, high - mean] if np.isfinite(low) else [0.0, 0.0])
+            ax.errorbar(xs, means, yerr=np.array(errors).T.reshape(2, -1), fmt='o', ms=4, capsize=2, label=method,
+                        color=colours[i % len(colours)])
+        for j in range(1, len(variants)):
+            ax.axvline(j - 0.5, color='grey', lw=0.5, alpha=0.5)
+        if paired:
+            ax.axhline(0.0, color='black', lw=1.0, label=f'{reference} (the teacher)')
+        ax.set_xlim(-0.5, len(variants) - 0.5)
+        ax.set_xticks(range(len(variants)), ticks, fontsize=8)
+        ax.set_ylabel((f'return under {mode} − {reference}\n(paired by test seed, 95% interval)' if paired else
+                       f'episode return under {mode}\n(95% interval)'))
+        ax.grid(alpha=0.3, axis='y')
         ax.legend(fontsize=7, loc='center left', bbox_to_anchor=(1.01, 0.5))
     return save(fig, out)
 
@@ -325,7 +392,8 @@ def write_comparison(out_dir: Path, report: Path, variants: Sequence[str], learn
     report.parent.mkdir(parents=True, exist_ok=True)
     per_variant = {variant: variant_runs(out_dir / variant, learned, drivers, modes) for variant in variants}
     per_variant = {variant: runs for variant, runs in per_variant.items() if runs}
-    figures = [learning_curves(out_dir / 'training', learned, report.with_name(f'{report.stem}_learning_curves.png')),
+    figures = [learning_curves(out_dir / 'training', learned, report.with_name(f'{report.stem}_learning_curves.png'),
+                               training_mode),
                variant_figure(per_variant, training_mode, report.with_name(f'{report.stem}_variants.png'))]
     seeds = sorted({len(names) for names in learned.values()})
     sections = ['# Comparison: every method on our highway-exit scenario and its variants',

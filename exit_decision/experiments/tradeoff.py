@@ -4,7 +4,8 @@ The policy drives the same seeds at every weight point: the configured modes (th
 four and Table A1's), and a sweep between the aggressive and the conservative decision
 weights (incentive and punishment 0.5 / 0.5). Per point: mean CAV speed, emergency brakings,
 the safety row of the reward (per episode, as scored) and the Exit-1 and collision rates.
-Writes ``tradeoff.csv`` and ``tradeoff.png``.
+Writes ``tradeoff.csv`` and ``tradeoff.png``; ``redraw_tradeoff`` draws the figure again from the
+CSV alone (``exit-decision tradeoff --plot-only``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np  # noqa: E402
 from exit_decision.config import ProjectConfig  # noqa: E402
 from exit_decision.errors import PolicyError  # noqa: E402
 from exit_decision.reward import SAFETY, weight_input, weights_of_input  # noqa: E402
-from exit_decision.tables import write_rows  # noqa: E402
+from exit_decision.tables import read_rows, write_rows  # noqa: E402
 
 SWEEP_STEPS = 5   # points from aggressive to conservative decision weights
 
@@ -61,19 +62,69 @@ def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out
         env.close()
     out_dir.mkdir(parents=True, exist_ok=True)
     write_rows(out_dir / 'tradeoff.csv', rows)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    return tradeoff_figure(rows, out_dir / 'tradeoff.png', figure_title(config, policy_path, len(seeds)))
+
+
+def figure_title(config: ProjectConfig, policy_path: Path, seeds: int) -> str:
+    return (f'{policy_path.parent.name}: one checkpoint at every weight point ({seeds} seeds each; '
+            f'grey: {"→".join(sweep_ends(config))} decision weights, I/P 0.5/0.5)')
+
+
+def redraw_tradeoff(config: ProjectConfig, policy_path: Path, seeds: int, out_dir: Path) -> Path:
+    """``tradeoff.png`` again from ``out_dir``'s tradeoff.csv: no simulation, no checkpoint read
+    (``policy_path`` and ``seeds`` only name them in the title)."""
+    rows = [{key: value if key == 'point' else float(value) for key, value in row.items()}
+            for row in read_rows(out_dir / 'tradeoff.csv')]
+    return tradeoff_figure(rows, out_dir / 'tradeoff.png', figure_title(config, policy_path, seeds))
+
+
+#: where a point's name may go, in points from it (right above first); the first that overlaps
+#: no name placed before and no other point is taken
+LABEL_OFFSETS = ((4, 3), (4, -9), (-4, 3), (-4, -9), (4, 9), (4, -15), (-4, 9), (-4, -15))
+
+
+def tradeoff_figure(rows: list[dict], path: Path, title: str) -> Path:
+    """CAV speed against emergency brakings and against the safety row, one point per weight
+    point (the sweep in grey, joined in its order), each named where its name covers no other."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    sweep = [row for row in rows if row['point'].startswith('sweep_')]
     for ax, key, label in ((axes[0], 'N_braking', 'emergency brakings per episode'),
                            (axes[1], 'safety_row', 'safety row of the reward per episode (scaled)')):
+        ax.plot([r['v_AVs'] for r in sweep], [r[key] for r in sweep], color='grey', lw=0.8, alpha=0.6, zorder=1)
         for row in rows:
-            sweep = row['point'].startswith('sweep_')
-            ax.scatter(row['v_AVs'], row[key], marker='.' if sweep else 'o', color='grey' if sweep else 'tab:blue')
-            ax.annotate(row['point'].removeprefix('sweep_'), (row['v_AVs'], row[key]), fontsize=7)
+            grey = row['point'].startswith('sweep_')
+            ax.scatter(row['v_AVs'], row[key], s=20 if grey else 40, color='grey' if grey else 'tab:blue', zorder=2)
         ax.set_xlabel('mean CAV speed [m/s]')
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    fig.suptitle(f'{policy_path.parent.name}: one checkpoint at every weight point ({len(seeds)} seeds each; '
-                 f'grey: {"→".join(sweep_ends(config))} decision weights, I/P 0.5/0.5)', fontsize=9)
+        ax.margins(0.12)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(out_dir / 'tradeoff.png', dpi=120)
+    for ax, key in zip(axes, ('N_braking', 'safety_row')):
+        place_names(ax, [(row['point'].removeprefix('sweep_'), row['v_AVs'], row[key]) for row in rows])
+    fig.savefig(path, dpi=120, bbox_inches='tight', pad_inches=0.1)
     plt.close(fig)
-    return out_dir / 'tradeoff.png'
+    return path
+
+
+def place_names(ax, points: list[tuple[str, float, float]], fontsize: float = 7) -> None:
+    """Each point's name beside it, at the first of LABEL_OFFSETS where its box overlaps no name
+    placed before and no other point (the last offset when every one does)."""
+    renderer = ax.figure.canvas.get_renderer()
+    ax.figure.canvas.draw()   # the axes' limits and place, final
+    dots = [(px - 6, py - 6, px + 6, py + 6) for px, py in (ax.transData.transform((x, y)) for _, x, y in points)]
+    placed: list[tuple[float, float, float, float]] = []
+
+    def clear(box: tuple[float, float, float, float], own: int) -> bool:
+        others = placed + dots[:own] + dots[own + 1:]
+        return not any(box[0] < o[2] and o[0] < box[2] and box[1] < o[3] and o[1] < box[3] for o in others)
+    for index, (name, x, y) in enumerate(points):
+        for dx, dy in LABEL_OFFSETS:
+            text = ax.annotate(name, (x, y), xytext=(dx, dy), textcoords='offset points', fontsize=fontsize,
+                               ha='left' if dx > 0 else 'right', va='bottom')
+            extent = text.get_window_extent(renderer)
+            box = (extent.x0 - 2, extent.y0 - 1, extent.x1 + 2, extent.y1 + 1)
+            if clear(box, index) or (dx, dy) == LABEL_OFFSETS[-1]:
+                placed.append(box)
+                break
+            text.remove()
