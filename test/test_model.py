@@ -16,7 +16,7 @@ from exit_decision.config import ConfigError
 from exit_decision.errors import PolicyError
 from exit_decision.graph import FEATURE_SETS, TrafficGraph
 from exit_decision.model.modes import CUSTOM_MODE, ModeWeights, check_weights
-from exit_decision.model.names import (DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS, default_policy_dir, is_conditioned,
+from exit_decision.model.names import (DEFAULT_ALGORITHM, GRID_ALGORITHM, SHIPPED_ALGORITHMS, default_policy_dir, is_conditioned,
                                        method_of, planned_policies, policy_path)
 from exit_decision.reward import weight_input
 from exit_decision.scenario.geometry import RoadGeometry
@@ -107,10 +107,12 @@ def test_the_shipped_policies_load_by_algorithm_and_mode_and_decide_for_the_weig
     matrix = project_config.mode_matrix.modes
     controllers = load_controllers(project_config, default_policy_dir(), planned_policies(SHIPPED_ALGORITHMS, matrix),
                                    shield, planner)
-    assert len(controllers) == 2 * len(matrix) + 1
-    assert {c.policy.action_space for c in controllers.values()} == {'grid'}, 'checkpoints without one: the grid'
+    assert len(controllers) == 2 * len(matrix) + 2
+    assert {algorithm: c.policy.action_space for (algorithm, _), c in controllers.items()
+            if algorithm in (GRID_ALGORITHM, DEFAULT_ALGORITHM)} == {GRID_ALGORITHM: 'grid', DEFAULT_ALGORITHM: 'options'}
+    assert controllers[('gqn', 'AGGI')].policy.action_space == 'grid', 'checkpoints without one: the grid'
     empty = TrafficSnapshot([])
-    conditioned = controllers[(DEFAULT_ALGORITHM, None)]
+    conditioned = controllers[(GRID_ALGORITHM, None)]
     for mode in matrix:
         conditioned.decide(idle, empty, modes.weights(mode))
     with pytest.raises(PolicyError, match='needs the mode weights'):
@@ -135,6 +137,6 @@ def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding
         load_controller(project_config, shipped, shield, planner, ('gqn', 'CONP'))
     with pytest.raises(PolicyError, match='not a mode-conditioned policy'):
         load_controller(project_config, shipped, shield, planner, ('gqn_conditioned', None))
-    conditioned = policy_path(default_policy_dir(), DEFAULT_ALGORITHM)
+    conditioned = policy_path(default_policy_dir(), GRID_ALGORITHM)
     with pytest.raises(PolicyError, match="a mode-conditioned policy; algorithm 'mdgqn' needs one per mode"):
         load_controller(project_config, conditioned, shield, planner, ('mdgqn', 'AGGI'))

@@ -461,7 +461,7 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
     from exit_decision.config import load_project
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.model.modes import ModeWeights
-    from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
+    from exit_decision.model.names import GRID_ALGORITHM, default_policy_dir, policy_path
     from exit_decision.model.policy import load_controller
     from exit_decision.shield_overrides import shield_overrides
     from ros_helpers import small_config_dir
@@ -471,7 +471,7 @@ def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver
     if driver == 'rule_based':
         controller = RuleBasedDriver.for_env(env)
     else:
-        controller = load_controller(config, policy_path(default_policy_dir(), DEFAULT_ALGORITHM), env.shield,
+        controller = load_controller(config, policy_path(default_policy_dir(), GRID_ALGORITHM), env.shield,
                                      env.planner).at(ModeWeights(config).weights('AGGP'))
     found = counted = 0
     try:

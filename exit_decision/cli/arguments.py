@@ -98,6 +98,6 @@ def known(option: str, value, check) -> None:
 
 
 def known_algorithm(algorithm: str, config) -> None:
-    """--algorithm: a learned method of the config, or <method>_conditioned (OptionError)."""
-    from exit_decision.model.names import CONDITIONED_SUFFIX
-    known('--algorithm', algorithm.removesuffix(CONDITIONED_SUFFIX), config.training.method)
+    """--algorithm: a learned method of the config, or <method>[_options][_conditioned] (OptionError)."""
+    from exit_decision.model.names import method_of
+    known('--algorithm', method_of(algorithm), config.training.method)

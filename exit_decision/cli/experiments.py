@@ -8,7 +8,7 @@ from pathlib import Path
 from exit_decision.cli.arguments import (COUNT, SEED, STEP, OptionError, checkpoint, config_options, existing, known,
                                          number)
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.model.names import DEFAULT_ALGORITHM, policy_path
+from exit_decision.model.names import DEFAULT_ALGORITHM, GRID_ALGORITHM, policy_path
 
 
 def cmd_ablation(args: argparse.Namespace) -> int:
@@ -218,7 +218,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
     compare.add_argument('--method', type=comparison_method, action='append', default=[],
                          help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
-                              f'policies/{DEFAULT_ALGORITHM}/policy.pt unless --train is given)')
+                              f'policies/{GRID_ALGORITHM}/policy.pt unless --train is given)')
     compare.add_argument('--train', action='append', default=[],
                          help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
                               'scenario, with the seeds and budget of --training; finished runs are reused')

@@ -10,7 +10,7 @@ from pathlib import Path
 from exit_decision.cli.arguments import SEED, STEP, OptionError, existing, known, known_algorithm, new_path, number
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
-from exit_decision.model.names import DEFAULT_ALGORITHM
+from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
 
 
 def thread_priority_option(parser: argparse.ArgumentParser, what: str = '') -> None:
@@ -48,8 +48,6 @@ def cmd_stack(args: argparse.Namespace) -> int:
 
     from exit_decision.evaluation.metrics import markdown_table, summarize
     from exit_decision.ros.stack.launcher import free_bag_path, run_stack
-
-    from exit_decision.model.names import SHIPPED_ALGORITHMS
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     check_thread_priority(args.thread_priority)
@@ -115,9 +113,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     stack.add_argument('--switch-at', type=STEP, default=300,
                        help='step of the first episode to switch at (below the scenario\'s max_steps)')
     stack.add_argument('--algorithm', default=DEFAULT_ALGORITHM,
-                       help='a learned method of config/training.yaml, <method>_conditioned for one network for every '
-                            f'mode; shipped policies: {DEFAULT_ALGORITHM}, gqn, mdgqn (others: --policy-dir with '
-                            '<algorithm>_<mode>/policy.pt)')
+                       help='a learned method of config/training.yaml (<method>[_options][_conditioned]: over options; '
+                            f'one network for every mode); shipped: {", ".join(SHIPPED_ALGORITHMS)} (others: '
+                            '--policy-dir with <algorithm>_<mode>/policy.pt)')
     stack.add_argument('--episodes', type=number(int, 0), default=1,
                        help='episodes to run (default 1); 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
                             'finish the bag)')

@@ -15,6 +15,7 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights
+from exit_decision.model.names import algorithm_name, run_name
 from exit_decision.model.driving import PolicyDriver
 from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.reward import scalar
@@ -128,6 +129,16 @@ def run_option_policy(env: ExitDecisionEnv, controller: PolicyController, weight
     return out
 
 
+def play_policy(env: ExitDecisionEnv, controller: PolicyController, weights: np.ndarray | None, seeds: Sequence[int],
+                desc: str | None = None, result: EvaluationResult | None = None,
+                show: ShowEpisodes | None = None) -> list[dict]:
+    """A policy's episodes at ``weights`` (``run_episodes``' rows), whichever its action space:
+    over options through the low level (``run_option_policy``), on the grid as a driver."""
+    if controller.policy.action_space == 'options':
+        return run_option_policy(env, controller, weights, seeds, desc)
+    return run_episodes(env, controller.at(weights), seeds, result, desc=desc, show=show)
+
+
 def run_episodes(env: ExitDecisionEnv, controller: Controller | None, seeds: Sequence[int],
                  result: EvaluationResult | None = None, desc: str | None = None,
                  show: ShowEpisodes | None = None) -> list[dict]:
@@ -166,18 +177,16 @@ def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str]
     policy, modes_weights = controller.policy, ModeWeights(config)
     if policy.action_space == 'options' and show is not None:
         raise PolicyError(f'{policy.path}: --show draws grid policies only (not yet a policy over options)')
-    name = name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
+    name = name or run_name(algorithm_name(policy.metadata['algorithm'], policy.action_space, policy.conditioned),
+                            policy.metadata['mode'])
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:
             result = EvaluationResult()
             weights = modes_weights.weights(mode) if policy.conditioned else None
             desc = f'{name} at {mode}' if policy.conditioned else name
-            if policy.action_space == 'options':
-                played = run_option_policy(env, controller, weights, seeds, desc)
-            else:
-                played = run_episodes(env, controller.at(weights), seeds, result, desc=desc,
-                                      show=show and show.named(f'{name}_{mode}' if policy.conditioned else name,
-                                                               mode if policy.conditioned else policy.metadata['mode']))
+            played = play_policy(env, controller, weights, seeds, desc, result,
+                                 show and show.named(f'{name}_{mode}' if policy.conditioned else name,
+                                                     mode if policy.conditioned else policy.metadata['mode']))
         runs.append(EvaluatedRun(f'{name}_{mode}', scored_episodes(played, env.reward_fn.weights(config.mode(mode))), result))
     return runs

@@ -16,7 +16,7 @@ from exit_decision.errors import UsageError
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_interval
-from exit_decision.model.names import DEFAULT_ALGORITHM, is_conditioned, method_of, run_name
+from exit_decision.model.names import GRID_ALGORITHM, is_conditioned, method_of, run_name
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
@@ -170,7 +170,7 @@ def interval_text(row: dict, key: str, digits: int = 3) -> str:
     return f'{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]'
 
 
-def target_checks(comparison: Sequence[dict], conditioned: str = DEFAULT_ALGORITHM,
+def target_checks(comparison: Sequence[dict], conditioned: str = GRID_ALGORITHM,
                   exit_target: float = 0.99, collision_target: float = 0.0067) -> list[str]:
     """The targets of the learning issue, checked on comparison.csv (every run against the
     neutral teacher under the same mode, paired over the test seeds)."""

@@ -40,7 +40,7 @@ from exit_decision.config import (ConfigError, ProjectConfig, TrainingConfig, de
 from exit_decision.errors import UsageError
 from exit_decision.evaluation.evaluate import EvaluatedRun, evaluate_policy
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, driver_runs, write_run
-from exit_decision.model.names import DEFAULT_ALGORITHM, default_policy_dir, policy_path
+from exit_decision.model.names import GRID_ALGORITHM, default_policy_dir, policy_path
 from exit_decision.tables import read_rows
 
 CellName = Annotated[str, StringConstraints(pattern=r'^[A-Za-z0-9_.-]+$')]   # a directory name
@@ -361,5 +361,6 @@ def run_trainings(runs: Sequence[TrainingRun], config: ProjectConfig, policies_d
 
 
 def default_methods() -> list[str]:
-    """The reference drivers and the shipped mode-conditioned policy."""
-    return [*REFERENCE_DRIVERS, str(policy_path(default_policy_dir(), DEFAULT_ALGORITHM))]
+    """The reference drivers and the shipped mode-conditioned policy on the grid (the sweep's
+    pages were made with it)."""
+    return [*REFERENCE_DRIVERS, str(policy_path(default_policy_dir(), GRID_ALGORITHM))]

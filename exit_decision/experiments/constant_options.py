@@ -50,18 +50,17 @@ def _episode(task: tuple) -> list[dict]:
     config, run, seed, variants, policies = task
     from exit_decision.agents.options import OptionExecutor, OptionSpace
     from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import (EvaluationResult, constant_option, run_episode, run_episodes,
-                                                   run_option_episode, run_option_policy)
+    from exit_decision.evaluation.evaluate import (EvaluationResult, constant_option, play_policy, run_episode,
+                                                   run_option_episode)
     from exit_decision.model.modes import ModeWeights
-    from exit_decision.model.policy import load_controller
+    from exit_decision.model.policy import ACTION_SPACES, load_controller
 
     env = _worker_env(config, 'sumo' if run == 'sumo' else 'policy')
     if AT in run:
         label, mode = run.split(AT)
-        controller = load_controller(config, policies[label], env.shield, env.planner, action_spaces=('grid', 'options'))
+        controller = load_controller(config, policies[label], env.shield, env.planner, action_spaces=ACTION_SPACES)
         weights = ModeWeights(config).weights(mode) if controller.policy.conditioned else None
-        played = (run_option_policy(env, controller, weights, [seed]) if controller.policy.action_space == 'options'
-                  else run_episodes(env, controller.at(weights), [seed]))
+        played = play_policy(env, controller, weights, [seed])
         metrics = {k: v for k, v in played[0].items() if k not in ('seed', 'reward_vector')}
     elif run == 'sumo':
         metrics = run_episode(env, None, seed, EvaluationResult())

@@ -41,17 +41,17 @@ def weight_points(config: ProjectConfig) -> dict[str, np.ndarray]:
 
 def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out_dir: Path) -> Path:
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import run_episodes
-    from exit_decision.model.policy import load_controller
+    from exit_decision.evaluation.evaluate import play_policy
+    from exit_decision.model.policy import ACTION_SPACES, load_controller
 
     env = ExitDecisionEnv(config)
     rows = []
     try:
-        controller = load_controller(config, policy_path, env.shield, env.planner)
+        controller = load_controller(config, policy_path, env.shield, env.planner, action_spaces=ACTION_SPACES)
         if not controller.policy.conditioned:
             raise PolicyError(f'{policy_path}: the trade-off needs a mode-conditioned policy')
         for name, weights in weight_points(config).items():
-            episodes = run_episodes(env, controller.at(weights), seeds, desc=name)
+            episodes = play_policy(env, controller, weights, seeds, desc=name)
             multipliers = weights_of_input(weights)
             rows.append({'point': name, **{f'w{i}': float(w) for i, w in enumerate(weights)},
                          **{k: float(np.nanmean([e[k] for e in episodes]))

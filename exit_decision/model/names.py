@@ -17,12 +17,15 @@ from pathlib import Path
 CONDITIONED = 'conditioned'
 #: run names and algorithms of mode-conditioned policies end so: policies/mdgqn_conditioned/policy.pt
 CONDITIONED_SUFFIX = f'_{CONDITIONED}'
-#: the shipped mode-conditioned MDGQN: the stack's algorithm, the policy of tradeoff, report and compare
-DEFAULT_ALGORITHM = 'mdgqn_conditioned'
-#: the algorithms whose policies are shipped in policies/
-SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', DEFAULT_ALGORITHM)
 #: the action space of an algorithm whose method's name ends so (else: the 81-action grid)
 OPTIONS_SUFFIX = '_options'
+#: the shipped mode-conditioned MDGQN over options: the stack's algorithm, the policy of
+#: tradeoff, report and the README's table
+DEFAULT_ALGORITHM = 'mdgqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX
+#: the mode-conditioned MDGQN on paper 000's 81-action grid (the comparison sweep's policy)
+GRID_ALGORITHM = 'mdgqn' + CONDITIONED_SUFFIX
+#: the algorithms whose policies are shipped in policies/ (gqn, mdgqn: per mode, on the grid)
+SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', GRID_ALGORITHM, DEFAULT_ALGORITHM)
 #: a planned policy: (algorithm, mode), mode None for a conditioned algorithm's one policy
 Planned = tuple[str, str | None]
 

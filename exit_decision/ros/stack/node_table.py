@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from exit_decision.model.names import DEFAULT_ALGORITHM
+from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
 from exit_decision.ros.stack import cpu_affinity, realtime
 
 BRIDGE = 'sumo_bridge'
@@ -46,7 +46,7 @@ ARGUMENTS: dict[str, Argument] = {
     'mode': Argument('AGGP', "decision mode at start, a mode of config/modes.yaml; empty: the decision node's "
                              "default, the first mode of the matrix"),
     'algorithm': Argument(DEFAULT_ALGORITHM, 'a learned method of config/training.yaml with policies in policy_dir '
-                                             f'(shipped: {DEFAULT_ALGORITHM}, one network for every mode; gqn; mdgqn)'),
+                                             f'(shipped: {", ".join(SHIPPED_ALGORITHMS)}; the default decides over options)'),
     'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
                           "of config/modes.yaml", list),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
