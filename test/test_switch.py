@@ -37,7 +37,8 @@ def test_no_leader_in_range_gives_no_headway():
 def test_the_stack_shows_the_recorded_switch_beside_the_same_seed_without_it():
     """On the replay fixture (the shipped stack, AGGP -> CONP half-way): the report names the
     switch, and the environment's runs of the same seed with and without it are the same
-    driving before it (like for like), so the rows after it tell what the switch did."""
+    driving before it (like for like), so the rows after it tell what the switch did: in the
+    bag and in the environment, the CAVs on the road at it slow down and keep longer gaps."""
     from pathlib import Path
 
     from exit_decision.config import load_project
@@ -53,3 +54,13 @@ def test_the_stack_shows_the_recorded_switch_beside_the_same_seed_without_it():
     assert report.startswith(f'the switch AGGP -> CONP at t = {switch.time:.1f} s')
     rows = [line.split('|')[2:] for line in report.splitlines() if line.startswith('| environment') and 'before' in line]
     assert len(rows) == 2 and rows[0] == rows[1], 'the same driving before the switch'
+    figures = {line.split('|')[1].strip(): [float(cell) for cell in line.split('|')[2:4]]
+               for line in report.splitlines() if line.startswith('| ') and ' s ' in line}
+    (bag_speed, bag_headway), (bag_speed_after, bag_headway_after) = (
+        figures[f'the stack (bag), AGGP -> CONP, 10 s {side}'] for side in ('before', 'after'))
+    assert bag_speed_after < bag_speed and bag_headway_after > bag_headway, \
+        f'on the bag, after AGGP -> CONP the CAVs slow down and keep longer gaps: {figures}'
+    (switched_speed, switched_headway), (kept_speed, kept_headway) = (
+        figures[f'environment, {run}, 10 s after'] for run in ('AGGP -> CONP', 'AGGP throughout'))
+    assert switched_speed < kept_speed and switched_headway > kept_headway, \
+        f'slower, with longer gaps, than the same seed without the switch: {figures}'
