@@ -67,3 +67,11 @@ def test_summary_and_table():
     summary = summarize(episodes)
     assert summary['p_CAV'] == (2.0, 1.0)
     assert '| run-a | 2 ± 1 |' in markdown_table([('run-a', summary)])
+
+
+def test_the_table_leaves_out_a_metric_no_run_measured():
+    measured = {m: 1.0 for m in METRICS if m != 'headway_CAV'}
+    table = markdown_table([('stack', summarize([measured])), ('also', summarize([measured]))])
+    assert 'headway_CAV' not in table and 'nan' not in table and '| p_CAV |' in table
+    table = markdown_table([('stack', summarize([measured])), ('env', summarize([dict.fromkeys(METRICS, 2.0)]))])
+    assert 'headway_CAV' in table and '| env |' in table

@@ -1,6 +1,7 @@
 """Summaries of episode metrics (``exit_decision.episode_log``) over many episodes."""
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -20,9 +21,12 @@ def summarize(episodes: Sequence[dict[str, float]]) -> dict[str, tuple[float, fl
 
 
 def markdown_table(rows: Iterable[tuple[str, dict[str, tuple[float, float]]]]) -> str:
-    """One line per (label, summary): mean ± std of every metric."""
-    lines = ['| run | ' + ' | '.join(METRICS) + ' |', '|---' * (len(METRICS) + 1) + '|']
+    """One line per (label, summary): mean ± std of every metric some row has (a metric no row
+    measured, such as the CAVs' headway in the stack's episode events, is left out)."""
+    rows = list(rows)
+    metrics = [m for m in METRICS if any(not math.isnan(summary[m][0]) for _, summary in rows)]
+    lines = ['| run | ' + ' | '.join(metrics) + ' |', '|---' * (len(metrics) + 1) + '|']
     for label, summary in rows:
-        cells = [f'{mean:.4g} ± {std:.2g}' for mean, std in (summary[m] for m in METRICS)]
+        cells = [f'{mean:.4g} ± {std:.2g}' for mean, std in (summary[m] for m in metrics)]
         lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
