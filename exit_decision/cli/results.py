@@ -28,7 +28,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     config = load_project(args.config_dir)
     print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
-                       max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings))
+                       max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings,
+                       options_dir=args.options_table))
     table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
                          config.env.reward_variant, DEFAULT_ALGORITHM)
     made_by = (args.options_table / 'constant_options.md').read_text(encoding='utf-8').split('`')[1]

@@ -251,8 +251,10 @@ def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
 
 
 def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
-                 figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]]) -> Path:
-    """docs/results.md from the generated artefacts: nothing in it is typed by hand."""
+                 figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]],
+                 options_dir: Path | None = None) -> Path:
+    """docs/results.md from the generated artefacts: nothing in it is typed by hand. ``options_dir``:
+    an ``options-table`` of the test seeds (the policies over options against the fixed drivers)."""
     relative = lambda path: Path(path).resolve().relative_to(out.parent.resolve()).as_posix()  # noqa: E731
     commands = evaluation_dir.parent / 'commands.txt'
     comparison = read_rows(evaluation_dir / 'comparison.csv')
@@ -265,7 +267,11 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
     if sanity.exists():
         text = sanity.read_text()
         parts += [text.split('\n', 2)[2].strip(), '']
-    parts += ['## The learned policies against their teacher (test seeds never used in training)', '',
+    options = options_dir / 'constant_options.md' if options_dir is not None else None
+    if options is not None and options.exists():
+        parts += ['## Over options: the learned policies against the fixed drivers (test seeds)', '',
+                  options.read_text().split('\n', 2)[2].strip(), '']
+    parts += ['## On the grid: the learned policies against their teacher (test seeds never used in training)', '',
               (evaluation_dir / 'comparison.md').read_text().split('\n', 2)[2].strip(), '',
               'Each row: the run minus the neutral rule-based teacher (`rule_based`) on the same seeds, under the '
               'named mode\'s reward (the paper\'s global scalar reward, unscaled); ↑ / ↓: the interval excludes 0. '
