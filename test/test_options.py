@@ -303,3 +303,19 @@ def test_a_policy_driver_over_options_runs_the_network_only_when_a_cav_begins_an
         assert len(calls) == 2
     finally:
         env.close()
+
+
+def test_the_options_table_says_whether_a_policy_drives_its_modes_as_they_are_named():
+    from exit_decision.experiments.constant_options import table_markdown
+
+    def row(run, seed, speed, headway):
+        return {'run': run, 'seed': seed, 'variant': 'v', 'v_AVs': speed, 'headway_CAV': headway, 'return_AGGI': 1.0,
+                'return_CONI': 1.0, **dict.fromkeys(('N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
+    rows = [row(run, seed, speed + 0.1 * seed, headway) for seed in (1, 2, 3)
+            for run, speed, headway in [('option_neutral', 15, 1.8), ('sumo', 15, 1.8), ('p@AGGI', 16, 1.5),
+                                        ('p@CONI', 15, 2.0), ('q@AGGI', 15, 2.0), ('q@CONI', 16, 1.5)]]
+    rows[-4]['headway_CAV'] = float('nan')   # p@AGGI on seed 3 had no leader in range: left out of the headway
+    text = table_markdown(rows, ['AGGI', 'CONI'], 'v', orderings=[('AGGI', 'CONI')])
+    assert ('- `p`: AGGI − CONI speed +1.000 m/s [+1.000, +1.000] (as named); '
+            'CONI − AGGI time headway +0.500 s [+0.500, +0.500] (as named)') in text
+    assert '- `q`: AGGI − CONI speed -1.000 m/s [-1.000, -1.000] (reversed)' in text

@@ -185,13 +185,16 @@ class ModeMatrix(Strict):
                 self.conservative.incentive, self.conservative.punished]
 
     @property
+    def aggressive_orderings(self) -> list[tuple[str, str]]:
+        """(aggressive, conservative) mode pairs of each column: the first faster, with shorter gaps."""
+        return [(self.aggressive.incentive, self.conservative.incentive),
+                (self.aggressive.punished, self.conservative.punished)]
+
+    @property
     def speed_orderings(self) -> list[tuple[str, str]]:
         """(faster, slower) pairs the modes' names promise: aggressive over conservative in each
         column, incentive over punished in each row."""
-        rows = (self.aggressive, self.conservative)
-        return ([(self.aggressive.incentive, self.conservative.incentive),
-                 (self.aggressive.punished, self.conservative.punished)]
-                + [(row.incentive, row.punished) for row in rows])
+        return self.aggressive_orderings + [(row.incentive, row.punished) for row in (self.aggressive, self.conservative)]
 
 
 class ModesConfig(Strict):

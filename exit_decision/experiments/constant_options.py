@@ -130,10 +130,12 @@ def best_fixed_drivers(by: dict, seeds: list[int], modes: list[str]) -> dict[str
     return {mode: max(options, key=lambda run: _returns(by, run, seeds, mode).mean()) for mode in modes}
 
 
-def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral')) -> str:
+def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral'),
+                   orderings: list[tuple[str, str]] = ()) -> str:
     """Per run: the driving columns, then per mode its return under ``variant`` and the paired
     difference to the neutral option; then, per mode, the best constant option (the best fixed
-    driver)."""
+    driver); then each policy at each mode against the best fixed driver and SUMO's drivers, and
+    for each (aggressive, conservative) pair of ``orderings`` whether it drives as they are named."""
     by, seeds = _by_run_and_seed(rows, variant, neutral)
     runs = [run for run in dict.fromkeys(run for run, _ in by) if AT not in run]
     lines = [f'### Reward variant `{variant}` ({len(seeds)} seeds)', '', '| run | ' + ' | '.join(COLUMNS) + ' | ' + ' | '.join(f'{m}: return (− neutral option)' for m in modes)
@@ -154,7 +156,25 @@ def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: st
             cells = _means(by, run, seeds) + [f'{_returns(by, run, seeds, mode).mean():.3f}']
             cells += [_paired(by, run, other, seeds, mode) for other in (best[mode], 'sumo')]
             lines.append(f'| {label} | {mode} | ' + ' | '.join(cells) + ' |')
+        lines += [line for label in labels for line in _orderings(by, seeds, label, orderings)]
     return '\n'.join(lines)
+
+
+def _orderings(by: dict, seeds: list[int], label: str, orderings: list[tuple[str, str]]) -> list[str]:
+    """Per (aggressive, conservative) pair: the policy's paired speed difference and time-headway
+    difference between the two modes, and whether each is as the modes are named."""
+    lines = []
+    for fast, slow in orderings:
+        cells = []
+        for metric, sign, unit in (('v_AVs', 1, 'm/s'), ('headway_CAV', -1, 's')):
+            pairs = [(float(by[(f'{label}{AT}{fast}', s)][metric]), float(by[(f'{label}{AT}{slow}', s)][metric]))
+                     for s in seeds]
+            mean, low, high = paired_interval([sign * (a - b) for a, b in pairs if np.isfinite(a) and np.isfinite(b)])
+            verdict = 'as named' if low > 0 else 'reversed' if high < 0 else 'not resolved'
+            what = f'{fast} − {slow} speed' if sign > 0 else f'{slow} − {fast} time headway'
+            cells.append(f'{what} {mean:+.3f} {unit} [{low:+.3f}, {high:+.3f}] ({verdict})')
+        lines.append(f'- `{label}`: ' + '; '.join(cells))
+    return ([''] + lines) if lines else []
 
 
 #: the README's results table: what each row is called there, and its columns (name, metric, format)
@@ -216,6 +236,7 @@ def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jo
             f'rule-based driver on the 81-action grid; `sumo`: SUMO\'s own drivers. Columns: means over the '
             f'episodes; per mode the mean return and, in brackets, the paired difference to `option_neutral` '
             f'with its 95% interval (↑ / ↓: the interval excludes 0).\n\n'
-            + '\n\n'.join(table_markdown(rows, config.mode_matrix.modes, variant) for variant in variants) + '\n')
+            + '\n\n'.join(table_markdown(rows, config.mode_matrix.modes, variant,
+                                           orderings=config.mode_matrix.aggressive_orderings) for variant in variants) + '\n')
     (out_dir / 'constant_options.md').write_text(text, encoding='utf-8')
     return text
