@@ -113,10 +113,11 @@ def _stamp():
 
 # --- `exit-decision show` on a fixture bag ---------------------------------------------------------
 
-def write_fixture_bag(path, layout, lane_shift=0):
+def write_fixture_bag(path, layout, lane_shift=0, commands_late=0):
     """One episode of 40 steps: 5 vehicles; CAV_0 commanded left at step 10; the mode switches
     from AGGP to CONP at step 20; HV1_0 disappears mid-road at step 30 (a collision).
-    ``lane_shift``: every lane index that much higher (a bag of a wider road)."""
+    ``lane_shift``: every lane index that much higher (a bag of a wider road); ``commands_late``:
+    the commands logged that many steps after their states (the recorder writes in batches)."""
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -146,7 +147,7 @@ def write_fixture_bag(path, layout, lane_shift=0):
                 graph_to_msg(graph, feature_set='test', episode=0, step=step, stamp=stamp_of(step * STEP))))
             if step % 5 == 0:
                 commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0), 'CAV_1': CavCommand(0, -2.0)}
-                writer.write(connections[COMMANDS_TOPIC], stamp + 2, serialize_message(commands_to_msg(
+                writer.write(connections[COMMANDS_TOPIC], stamp + 2 + commands_late * 10_000_000, serialize_message(commands_to_msg(
                     commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP' if step < 20 else 'CONP',
                     algorithm='mdgqn_conditioned', policy='test')))
     return vehicles
@@ -158,11 +159,13 @@ def class_pixels(image: np.ndarray, box, colour, tolerance=12) -> int:
     return int((np.abs(area - np.array(colour) * 255).max(axis=2) <= tolerance).sum())
 
 
-def test_show_draws_every_vehicle_of_a_bag_in_its_class_colour_and_a_clip(project_config, layout, tmp_path):
+@pytest.mark.parametrize('commands_late', [0, 7])
+def test_show_draws_every_vehicle_of_a_bag_in_its_class_colour_and_a_clip(project_config, layout, tmp_path,
+                                                                           commands_late):
     from exit_decision.ros.bags.show import show_bag
 
     bag = tmp_path / 'bag'
-    vehicles = write_fixture_bag(bag, layout)
+    vehicles = write_fixture_bag(bag, layout, commands_late=commands_late)
     [shown] = show_bag(bag, project_config, tmp_path / 'out', progress=False)
     diagram = shown.diagram
     assert diagram.trajectories == vehicles, 'a trajectory drawn for every vehicle of the bag, in its class'
@@ -412,7 +415,7 @@ def write_events_and_overrides(path, layout, p_collision):
                 states_to_msg(states, episode=0, step=step, step_length=STEP)))
             if step % 5 == 0:
                 commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0)}
-                writer.write(connections[COMMANDS_TOPIC], stamp + 2, serialize_message(commands_to_msg(
+                writer.write(connections[COMMANDS_TOPIC], stamp + 2 + commands_late * 10_000_000, serialize_message(commands_to_msg(
                     commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP', algorithm='a',
                     policy='test')))
             if step == 15:

@@ -8,6 +8,7 @@ without episode events (or cut before an episode's end) has its crashes inferred
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,9 @@ from exit_decision.visualization.layout import RoadLayout
 from exit_decision.visualization.trace import EpisodeTrace, FrameBuilder
 
 TOPICS = {STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC, OVERRIDES_TOPIC, EPISODE_TOPIC}
+#: within one step: its states, the graph of them, the decision's commands and overrides (an
+#: episode's start comes before its first step, its end after its last)
+STEP_ORDER = {EPISODE_TOPIC: 0, STATES_TOPIC: 1, GRAPH_TOPIC: 2, COMMANDS_TOPIC: 3, OVERRIDES_TOPIC: 4}
 LONG_BAG = 5000   # messages: a bag this long gets a progress bar (about 5 s of reading)
 
 
@@ -79,11 +83,16 @@ def read_traces(bag: Path, layout: RoadLayout, highway_edges: Collection[str], e
     builders: dict[int, FrameBuilder] = {}
     traces: dict[int, EpisodeTrace] = {}
     seen: set[int] = set()
-    for topic, _, _, msg in tqdm(read_messages(bag, TOPICS), total=total, desc=bag.name, unit='msg',
-                                 disable=not progress or total < LONG_BAG, mininterval=0.5):
+    wanted = []
+    for index, (topic, _, _, msg) in enumerate(tqdm(read_messages(bag, TOPICS), total=total, desc=bag.name, unit='msg',
+                                                    disable=not progress or total < LONG_BAG, mininterval=0.5)):
         seen.add(msg.episode)
-        if episodes is not None and msg.episode not in episodes:
-            continue
+        if episodes is None or msg.episode in episodes:
+            step = msg.step if topic != EPISODE_TOPIC else -1 if msg.event == msg.EVENT_STARTED else math.inf
+            wanted.append((msg.episode, step, STEP_ORDER[topic], index, topic, msg))
+    # in the order of the simulation, not the bag's: the recorder writes each topic's messages in
+    # batches, so a decision's commands may follow the states of tens of steps after it
+    for *_, topic, msg in sorted(wanted, key=lambda item: item[:4]):
         try:
             if topic == STATES_TOPIC:
                 builder = builders.get(msg.episode)
