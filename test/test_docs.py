@@ -526,3 +526,8 @@ def test_the_checks_find_each_kind_of_mistake_and_name_its_file_and_line(tmp_pat
     correct = tmp_path / 'correct.md'
     correct.write_text(CORRECT)
     assert command_problems(correct) + link_problems(correct) == []
+
+
+def test_the_readme_is_under_150_lines():
+    lines = (REPO / 'README.md').read_text(encoding='utf-8').splitlines()
+    assert len(lines) < 150, f'README.md: {len(lines)} lines; a newcomer reads it in five minutes: under 150'
