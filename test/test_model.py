@@ -107,9 +107,9 @@ def test_the_shipped_policies_load_by_algorithm_and_mode_and_decide_for_the_weig
     matrix = project_config.mode_matrix.modes
     controllers = load_controllers(project_config, default_policy_dir(), planned_policies(SHIPPED_ALGORITHMS, matrix),
                                    shield, planner)
-    assert len(controllers) == 2 * len(matrix) + 2
-    assert {algorithm: c.policy.action_space for (algorithm, _), c in controllers.items()
-            if algorithm in (GRID_ALGORITHM, DEFAULT_ALGORITHM)} == {GRID_ALGORITHM: 'grid', DEFAULT_ALGORITHM: 'options'}
+    assert len(controllers) == 2 * len(matrix) + 3
+    assert {algorithm: c.policy.action_space for (algorithm, mode), c in controllers.items() if mode is None} == {
+        GRID_ALGORITHM: 'grid', DEFAULT_ALGORITHM: 'options', 'gqn_options_conditioned': 'options'}
     assert controllers[('gqn', 'AGGI')].policy.action_space == 'grid', 'checkpoints without one: the grid'
     empty = TrafficSnapshot([])
     conditioned = controllers[(GRID_ALGORITHM, None)]

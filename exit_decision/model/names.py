@@ -25,7 +25,7 @@ DEFAULT_ALGORITHM = 'mdgqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX
 #: the mode-conditioned MDGQN on paper 000's 81-action grid (the comparison sweep's policy)
 GRID_ALGORITHM = 'mdgqn' + CONDITIONED_SUFFIX
 #: the algorithms whose policies are shipped in policies/ (gqn, mdgqn: per mode, on the grid)
-SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', GRID_ALGORITHM, DEFAULT_ALGORITHM)
+SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', GRID_ALGORITHM, DEFAULT_ALGORITHM, 'gqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX)
 #: a planned policy: (algorithm, mode), mode None for a conditioned algorithm's one policy
 Planned = tuple[str, str | None]
 
