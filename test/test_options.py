@@ -204,8 +204,8 @@ def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo
     assert aggi[2].endswith('— |')
     coni = [line for line in lines if line.startswith('| CONI |')]
     assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ |')
-    assert lines[-1].endswith("The shipped policy's return against the best fixed driver: above under AGGI, CONI, and "
-                              "against SUMO's drivers: above under AGGI, CONI.")
+    assert lines[-1].endswith("The shipped policy's return: against the best fixed driver, above under AGGI, CONI; "
+                              "against SUMO's drivers, above under AGGI, CONI.")
     assert len(readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped').splitlines()) == 2 + 3 + 2
 
 
@@ -319,3 +319,17 @@ def test_the_options_table_says_whether_a_policy_drives_its_modes_as_they_are_na
     assert ('- `p`: AGGI − CONI speed +1.000 m/s [+1.000, +1.000] (as named); '
             'CONI − AGGI time headway +0.500 s [+0.500, +0.500] (as named)') in text
     assert '- `q`: AGGI − CONI speed -1.000 m/s [-1.000, -1.000] (reversed)' in text
+
+
+def test_the_readme_table_gives_one_row_when_the_neutral_driver_is_the_best_fixed_one():
+    from exit_decision.experiments.constant_options import readme_table
+
+    def row(run, seed, aggi):
+        return {'run': run, 'seed': seed, 'variant': 'v', 'return_AGGI': aggi,
+                **dict.fromkeys(('v_AVs', 'headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
+    rows = [row(run, seed, aggi + seed) for seed in (1, 2) for run, aggi in
+            [('option_neutral', 10), ('option_close', 9), ('sumo', 9), ('p@AGGI', 9)]]
+    lines = [line for line in readme_table(rows, ['AGGI'], 'v', 'p').splitlines() if line.startswith('| AGGI')]
+    assert [line.split(' | ')[1] for line in lines] == [
+        'the shipped policy', 'the best fixed driver (`neutral`, the neutral driver)', "SUMO's drivers"]
+    assert lines[0].endswith('-1.000 [-1.000, -1.000] ↓ |') and lines[1].endswith('— |')

@@ -50,7 +50,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     report.add_argument('--config-dir', type=existing('dir'), default=None)
     report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies') / DEFAULT_ALGORITHM],
                         help='training run directories (validation history, wall time)')
-    report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity'))
+    report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity_headway'),
+                        help='a reward-sanity --out directory (default: the sweep of the frozen reward, headway)')
     report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
     report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'))
     report.add_argument('--out', type=Path, default=Path('docs/results.md'))

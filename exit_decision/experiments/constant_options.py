@@ -196,9 +196,10 @@ def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str,
     for mode in modes:
         runs = {'policy': f'{policy}{AT}{mode}', 'best': best[mode], 'neutral': neutral, 'sumo': 'sumo'}
         for role, run in runs.items():
-            if (run, seeds[0]) not in by:
-                continue
-            label = README_DRIVERS[role] + (f' (`{run.removeprefix("option_")}`)' if role == 'best' else '')
+            if (run, seeds[0]) not in by or (role == 'neutral' and best[mode] == neutral):
+                continue   # no policy in the rows; the neutral driver is the best fixed one (one row)
+            label = README_DRIVERS[role] + (f' (`{run.removeprefix("option_")}`'
+                                            + (', the neutral driver)' if run == neutral else ')') if role == 'best' else '')
             cells = [format(np.nanmean([float(by[(run, s)][metric]) for s in seeds]), spec) for _, metric, spec in README_COLUMNS]
             difference = '—' if run == neutral else _paired(by, run, neutral, seeds, mode)
             lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + f' | {difference} |')
@@ -211,15 +212,15 @@ def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str],
     SUMO's drivers', mode by mode."""
     if (f'{policy}{AT}{modes[0]}', seeds[0]) not in by:
         return 'No policy in these rows: they are the drivers a learned policy must beat.'
-    words = {'↑': 'above', '↓': 'below', '': 'not resolved against'}
+    words = {'↑': 'above', '↓': 'below', '': 'not resolved'}
     parts = []
     for other, name in (('best', 'the best fixed driver'), ('sumo', "SUMO's drivers")):
         verdicts = {}
         for mode in modes:
             text = _paired(by, f'{policy}{AT}{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
             verdicts.setdefault(words[text[-1] if text[-1] in '↑↓' else ''], []).append(mode)
-        parts.append(f'{name}: ' + '; '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
-    return "The shipped policy's return against " + ', and against '.join(parts) + '.'
+        parts.append(f'against {name}, ' + ' and '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
+    return "The shipped policy's return: " + '; '.join(parts) + '.'
 
 
 def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,
