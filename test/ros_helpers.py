@@ -27,13 +27,14 @@ def small_config_dir(target: Path) -> Path:
 
 
 def random_policies(config_dir: Path, target: Path, modes=('AGGI', 'AGGP', 'CONI', 'CONP')) -> Path:
-    """Small untrained policies for every (algorithm, mode), a conditioned one, and a
-    conditioned one over options: the wiring, not the driving, is tested."""
+    """Small untrained policies for every (algorithm, mode), a conditioned one, and the
+    conditioned ones over options: the wiring, not the driving, is tested."""
     config = load_project(config_dir)
     grid = ActionGrid(config.env.actions)
     options = config.env.options
     runs = [(a, m, f'{a}_{m}') for a in ('gqn', 'mdgqn') for m in modes] + [
-        ('mdgqn', 'conditioned', 'mdgqn_conditioned'), ('mdgqn', 'conditioned', 'mdgqn_options_conditioned')]
+        ('mdgqn', 'conditioned', 'mdgqn_conditioned'), ('mdgqn', 'conditioned', 'mdgqn_options_conditioned'),
+        ('gqn', 'conditioned', 'gqn_options_conditioned')]
     for index, (algorithm, mode, name) in enumerate(runs):
         torch.manual_seed(index)
         over_options = '_options' in name

@@ -147,7 +147,8 @@ def write_fixture_bag(path, layout, lane_shift=0, commands_late=0):
                 graph_to_msg(graph, feature_set='test', episode=0, step=step, stamp=stamp_of(step * STEP))))
             if step % 5 == 0:
                 commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0), 'CAV_1': CavCommand(0, -2.0)}
-                writer.write(connections[COMMANDS_TOPIC], stamp + 2 + commands_late * 10_000_000, serialize_message(commands_to_msg(
+                logged = stamp + 2 + commands_late * 10_000_000
+                writer.write(connections[COMMANDS_TOPIC], logged, serialize_message(commands_to_msg(
                     commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP' if step < 20 else 'CONP',
                     algorithm='mdgqn_conditioned', policy='test')))
     return vehicles
@@ -415,7 +416,7 @@ def write_events_and_overrides(path, layout, p_collision):
                 states_to_msg(states, episode=0, step=step, step_length=STEP)))
             if step % 5 == 0:
                 commands = {'CAV_0': CavCommand(1 if step == 10 else 0, 1.0)}
-                writer.write(connections[COMMANDS_TOPIC], stamp + 2 + commands_late * 10_000_000, serialize_message(commands_to_msg(
+                writer.write(connections[COMMANDS_TOPIC], stamp + 2, serialize_message(commands_to_msg(
                     commands, episode=0, step=step, stamp=stamp_of(step * STEP), mode='AGGP', algorithm='a',
                     policy='test')))
             if step == 15:
