@@ -140,3 +140,11 @@ def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding
     conditioned = policy_path(default_policy_dir(), GRID_ALGORITHM)
     with pytest.raises(PolicyError, match="a mode-conditioned policy; algorithm 'mdgqn' needs one per mode"):
         load_controller(project_config, conditioned, shield, planner, ('mdgqn', 'AGGI'))
+
+
+def test_a_checkpoint_names_its_run_by_the_naming_rule(project_config):
+    from exit_decision.model.policy import load_policy
+
+    for algorithm, mode in planned_policies(SHIPPED_ALGORITHMS, project_config.mode_matrix.modes):
+        path = policy_path(default_policy_dir(), algorithm, mode)
+        assert load_policy(path).run_name == path.parent.name, 'evaluate and compare name a run as its directory'

@@ -15,7 +15,6 @@ from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights
-from exit_decision.model.names import algorithm_name, run_name
 from exit_decision.model.driving import PolicyDriver
 from exit_decision.model.policy import PolicyController, load_controller
 from exit_decision.reward import scalar
@@ -177,8 +176,7 @@ def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str]
     policy, modes_weights = controller.policy, ModeWeights(config)
     if policy.action_space == 'options' and show is not None:
         raise PolicyError(f'{policy.path}: --show draws grid policies only (not yet a policy over options)')
-    name = name or run_name(algorithm_name(policy.metadata['algorithm'], policy.action_space, policy.conditioned),
-                            policy.metadata['mode'])
+    name = name or policy.run_name
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:

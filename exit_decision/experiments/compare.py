@@ -104,7 +104,7 @@ def plan_cells(methods: Sequence[str], configs: dict[str, ProjectConfig], modes:
         elif Path(method).suffix == '.pt':
             policy = load_policy(method)
             policy.check_compatible(next(iter(configs.values())))
-            name = run_name or f'{policy.metadata["algorithm"]}_{policy.metadata["mode"]}'
+            name = run_name or policy.run_name
             per_mode = [(mode,) for mode in modes] if policy.conditioned else [tuple(modes)]
             policy = Path(method)
         else:

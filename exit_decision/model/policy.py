@@ -31,7 +31,7 @@ from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.model.modes import ModeWeights, same_weights
-from exit_decision.model.names import Planned, action_space_of, is_conditioned, policy_path
+from exit_decision.model.names import Planned, action_space_of, algorithm_name, is_conditioned, policy_path, run_name
 from exit_decision.model.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
@@ -103,6 +103,13 @@ class GraphPolicy:
     def mode(self) -> str | None:
         """The mode a per-mode policy was trained for; None for a conditioned one."""
         return None if self.conditioned else self.metadata.get('mode')
+
+    @property
+    def run_name(self) -> str:
+        """The name of its training run by the naming rule (``model.names``): ``<method>[_options]_<mode>``
+        or ``<method>[_options]_conditioned``."""
+        return run_name(algorithm_name(self.metadata['algorithm'], self.action_space, self.conditioned),
+                        self.metadata['mode'])
 
     @property
     def measures(self) -> bool:
