@@ -271,6 +271,10 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
     if options is not None and options.exists():
         parts += ['## Over options: the learned policies against the fixed drivers (test seeds)', '',
                   options.read_text().split('\n', 2)[2].strip(), '']
+    ablation = options_dir.parent / 'ablation' / 'constant_options.md' if options_dir is not None else None
+    if ablation is not None and ablation.exists():   # the shipped policy beside one trained with the previous safety row
+        parts += ['## Ablation: the safety row (the shipped policy beside one trained with the previous row)', '',
+                  ablation.read_text().split('\n', 2)[2].strip(), '']
     parts += ['## On the grid: the learned policies against their teacher (test seeds never used in training)', '',
               (evaluation_dir / 'comparison.md').read_text().split('\n', 2)[2].strip(), '',
               'Each row: the run minus the neutral rule-based teacher (`rule_based`) on the same seeds, under the '
