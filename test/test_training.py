@@ -141,7 +141,7 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
     assert policy.action_space == 'options' and policy.network.shape.num_actions == trainer.env.options.size
     evaluate_runs(config, [policy_path], [], ['AGGI'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
                   command='test')
-    assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_conditioned_AGGI']['p_CAV'][0] <= 1.0
+    assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_options_conditioned_AGGI']['p_CAV'][0] <= 1.0
     from exit_decision.experiments.constant_options import run_table, table_markdown
     variant = config.env.reward_variant
     text = table_markdown(run_table(config, [10_000, 10_001], [variant], 1, {'learned': policy_path}), ['AGGI', 'CONP'],
