@@ -129,11 +129,13 @@ class OptionExecutor:
     def choose(self, snapshot: TrafficSnapshot, cav_ids: Sequence[str], time: float,
                chooser: Callable[[VehicleState, np.ndarray], int]) -> dict[str, int]:
         """Begins a new option for every CAV whose option ended, ``chooser(vehicle, mask)``
-        picking it; returns CAV id -> the option it holds. Options of CAVs gone are dropped."""
+        picking it; returns CAV id -> the option it holds. Options of CAVs gone are dropped.
+        KeyError, before any option changes, when a CAV is not in ``snapshot``."""
+        vehicles = [snapshot.by_id[vehicle_id] for vehicle_id in cav_ids]
         present = set(cav_ids)
         self.held = {vid: held for vid, held in self.held.items() if vid in present}
-        for vehicle_id in cav_ids:
-            vehicle = snapshot.by_id[vehicle_id]
+        for vehicle in vehicles:
+            vehicle_id = vehicle.vehicle_id
             if not self.ended(vehicle, time):
                 continue
             mask = self.space.mask(vehicle)

@@ -250,6 +250,11 @@ def step_cap_lines(evaluation_dir: Path, max_steps: int) -> list[str]:
     return lines or [f'- none: no episode ran into the {max_steps}-step cap']
 
 
+def _body(page: Path) -> str:
+    """A generated page without its title line and the blank line after it."""
+    return page.read_text().split('\n', 2)[2].strip()
+
+
 def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
                  figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]],
                  options_dir: Path | None = None) -> Path:
@@ -263,20 +268,17 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
              'reproduce every number. Intervals are 95% (normal approximation) over paired seeds.', '',
              *(['```', commands.read_text().strip(), '```', ''] if commands.exists() else []),
              '## The reward prefers what its mode names (before any training)', '']
-    sanity = sanity_dir / 'reward_sanity.md'
-    if sanity.exists():
-        text = sanity.read_text()
-        parts += [text.split('\n', 2)[2].strip(), '']
-    options = options_dir / 'constant_options.md' if options_dir is not None else None
-    if options is not None and options.exists():
-        parts += ['## Over options: the learned policies against the fixed drivers (test seeds)', '',
-                  options.read_text().split('\n', 2)[2].strip(), '']
-    ablation = options_dir.parent / 'ablation' / 'constant_options.md' if options_dir is not None else None
-    if ablation is not None and ablation.exists():   # the shipped policy beside one trained with the previous safety row
-        parts += ['## Ablation: the safety row (the shipped policy beside one trained with the previous row)', '',
-                  ablation.read_text().split('\n', 2)[2].strip(), '']
+    tables = [('', sanity_dir / 'reward_sanity.md')]
+    if options_dir is not None:   # and the safety row's ablation beside it, when made (docs/results/commands.txt)
+        tables += [('## Over options: the learned policies against the fixed drivers (test seeds)',
+                    options_dir / 'constant_options.md'),
+                   ('## Ablation: the safety row (the shipped policy beside one trained with the previous row)',
+                    options_dir.parent / 'ablation' / 'constant_options.md')]
+    for heading, page in tables:
+        if page.exists():
+            parts += [*([heading, ''] if heading else []), _body(page), '']
     parts += ['## On the grid: the learned policies against their teacher (test seeds never used in training)', '',
-              (evaluation_dir / 'comparison.md').read_text().split('\n', 2)[2].strip(), '',
+              _body(evaluation_dir / 'comparison.md'), '',
               'Each row: the run minus the neutral rule-based teacher (`rule_based`) on the same seeds, under the '
               'named mode\'s reward (the paper\'s global scalar reward, unscaled); ↑ / ↓: the interval excludes 0. '
               f'Per-episode rows: [`{relative(evaluation_dir)}/`]({relative(evaluation_dir)}/).', '',

@@ -112,12 +112,20 @@ def _returns(by: dict, run: str, seeds: list[int], mode: str) -> np.ndarray:
     return np.array([float(by[(run, s)][f'return_{mode}']) for s in seeds])
 
 
+def _side(low: float, high: float) -> int:
+    """+1 / -1 when a 95% interval lies above / below 0; 0: not resolved."""
+    return 1 if low > 0 else -1 if high < 0 else 0
+
+
+def _paired_interval(by: dict, run: str, other: str, seeds: list[int], mode: str) -> tuple[float, float, float]:
+    """``run`` minus ``other`` under ``mode``, paired over the seeds: mean and 95% interval."""
+    return paired_interval(_returns(by, run, seeds, mode) - _returns(by, other, seeds, mode))
+
+
 def _paired(by: dict, run: str, other: str, seeds: list[int], mode: str) -> str:
-    """``run`` minus ``other`` under ``mode``, paired over the seeds, with its 95% interval
-    (↑ / ↓: the interval excludes 0)."""
-    mean, low, high = paired_interval(_returns(by, run, seeds, mode) - _returns(by, other, seeds, mode))
-    mark = ' ↑' if low > 0 else ' ↓' if high < 0 else ''
-    return f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]{mark}'
+    """``_paired_interval`` as text (↑ / ↓: the interval excludes 0)."""
+    mean, low, high = _paired_interval(by, run, other, seeds, mode)
+    return f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]' + {1: ' ↑', -1: ' ↓', 0: ''}[_side(low, high)]
 
 
 def _means(by: dict, run: str, seeds: list[int]) -> list[str]:
@@ -170,7 +178,7 @@ def _orderings(by: dict, seeds: list[int], label: str, orderings: list[tuple[str
             pairs = [(float(by[(f'{label}{AT}{fast}', s)][metric]), float(by[(f'{label}{AT}{slow}', s)][metric]))
                      for s in seeds]
             mean, low, high = paired_interval([sign * (a - b) for a, b in pairs if np.isfinite(a) and np.isfinite(b)])
-            verdict = 'as named' if low > 0 else 'reversed' if high < 0 else 'not resolved'
+            verdict = {1: 'as named', -1: 'reversed', 0: 'not resolved'}[_side(low, high)]
             what = f'{fast} − {slow} speed' if sign > 0 else f'{slow} − {fast} time headway'
             cells.append(f'{what} {mean:+.3f} {unit} [{low:+.3f}, {high:+.3f}] ({verdict})')
         lines.append(f'- `{label}`: ' + '; '.join(cells))
@@ -212,13 +220,13 @@ def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str],
     SUMO's drivers', mode by mode."""
     if (f'{policy}{AT}{modes[0]}', seeds[0]) not in by:
         return 'No policy in these rows: they are the drivers a learned policy must beat.'
-    words = {'↑': 'above', '↓': 'below', '': 'not resolved'}
+    words = {1: 'above', -1: 'below', 0: 'not resolved'}
     parts = []
     for other, name in (('best', 'the best fixed driver'), ('sumo', "SUMO's drivers")):
         verdicts = {}
         for mode in modes:
-            text = _paired(by, f'{policy}{AT}{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
-            verdicts.setdefault(words[text[-1] if text[-1] in '↑↓' else ''], []).append(mode)
+            _, low, high = _paired_interval(by, f'{policy}{AT}{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
+            verdicts.setdefault(words[_side(low, high)], []).append(mode)
         parts.append(f'against {name}, ' + ' and '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
     return "The shipped policy's return: " + '; '.join(parts) + '.'
 

@@ -58,8 +58,6 @@ class PolicyDriver:
             return StepDecision({vid: self.grid.command(index) for vid, index in decision.actions.items()},
                                 shield_overrides(decision, self.grid))
         cav_ids = graph.cav_ids()
-        for vehicle_id in cav_ids:
-            snapshot.by_id[vehicle_id]   # a CAV missing from the states fails before any option changes
         self.executor.choose(snapshot, cav_ids, time, self.controller.option_chooser(graph, snapshot, weights))
         return StepDecision(self.executor.commands(snapshot, cav_ids), {}, self.executor.held_options())
 

@@ -90,13 +90,11 @@ class PolicySelection:
                                              ' (reward_weights off a mode need a conditioned algorithm)'))
         return None
 
-    def apply(self, changes: dict) -> bool:
-        """Take accepted changes; True when the weights (the mode) changed: options end there."""
-        before = self.weights
+    def apply(self, changes: dict) -> None:
+        """Take accepted changes (the caller ends every held option at any change)."""
         if 'algorithm' in changes:
             self.algorithm = changes['algorithm']
         if 'mode' in changes:
             self.mode = changes['mode']
         if 'reward_weights' in changes:
             self.weights = np.asarray(changes['reward_weights'], dtype=float)
-        return not np.array_equal(before, self.weights)
