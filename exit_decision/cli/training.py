@@ -7,6 +7,7 @@ from pathlib import Path
 from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
+from exit_decision.model.names import algorithm_name, run_name
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -23,7 +24,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.episodes and steps:
         raise UsageError(f'--episodes {args.episodes}: this config\'s budget for {args.algorithm} is environment_steps: '
                          f'{steps}; give one budget (drop --episodes, or set environment_steps to null with --override)')
-    out_dir = args.out or Path('runs') / f'{args.algorithm}_{args.mode}_seed{args.seed}'
+    run = run_name(algorithm_name(args.algorithm, args.action_space, False), args.mode)   # grid and options apart
+    out_dir = args.out or Path('runs') / f'{run}_seed{args.seed}'
     if args.reward_variant:
         known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})

@@ -56,10 +56,11 @@ class Checkpoints:
 
     def __init__(self, out_dir: Path, description: dict[str, Any], agent: GraphQAgent, rng: np.random.Generator):
         self.out_dir, self.description, self.agent, self.rng = out_dir, description, agent, rng
+        self.revision = git_revision()   # the checkout the run started from (a git process: once)
 
     def metadata(self, state: TrainingState) -> dict[str, Any]:
         """The run's description, the checkout's revision and the progress at ``state``."""
-        return {**self.description, 'git_revision': git_revision(), 'episode': state.episode,
+        return {**self.description, 'git_revision': self.revision, 'episode': state.episode,
                 'updates': state.updates}
 
     def save_candidate(self, state: TrainingState) -> Path:
