@@ -67,7 +67,7 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
                     trainer.learn_step()
             steps, started = 0, time.perf_counter()
             for episode in range(episodes):
-                trainer.collector.episode(seed + episode, trainer.agent.online, trainer.episode_weights(), 0.1,
+                trainer.collector.episode(seed + episode, trainer.agent.online, trainer.episode_mode(), 0.1,
                                           on_decision=learn)
                 steps += trainer.env.episode_log.steps
             elapsed = time.perf_counter() - started
@@ -107,7 +107,8 @@ def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
     import tempfile
 
     from exit_decision.config import default_config_dir
-    from exit_decision.experiments.compare import load_variants, plan_cells, run_sweep
+    from exit_decision.config import load_variants
+    from exit_decision.experiments.compare import plan_cells, run_sweep
 
     configs = load_variants((config_dir or default_config_dir()) / 'variants.yaml', config_dir)
     cells = plan_cells(['rule_based'], configs, [next(iter(configs.values())).env.mode])

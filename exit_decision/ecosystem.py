@@ -37,7 +37,7 @@ from exit_decision.actions import NO_ACTION
 from exit_decision.config import load_project
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.reward import credit, scalar
-from exit_decision.traffic import vehicle_id_of
+from exit_decision.traffic import CAV, vehicle_id_of
 
 #: the extra columns of a PettingZoo observation, after the graph's features
 EGO_COLUMNS = ('is_cav', 'present')
@@ -62,8 +62,8 @@ class HighwayExitParallelEnv(ParallelEnv):
     def __init__(self, env: ExitDecisionEnv):
         self.env = env
         config = env.config
-        self.possible_agents = [vehicle_id_of('CAV', serial)
-                                for serial in range(config.scenario.vehicle_classes['CAV'].count)]
+        self.possible_agents = [vehicle_id_of(CAV, serial)
+                                for serial in range(config.scenario.vehicle_classes[CAV].count)]
         self.agents: list[str] = []
         n, f = config.graph.max_vehicles, env.graph_builder.num_features
         self._position = env.graph_builder.feature_names.index('position')

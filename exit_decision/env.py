@@ -24,8 +24,9 @@ from gymnasium import spaces
 from exit_decision.actions import ActionGrid
 from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.options import OptionExecutor, OptionSpace
+from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.agents.shield import Shield
-from exit_decision.config import ActionSpaceName, ProjectConfig
+from exit_decision.config import ActionSpaceName, ProjectConfig, RuleBasedConfig
 from exit_decision.episode_log import EpisodeLog
 from exit_decision.graph import GraphBuilder, TrafficGraph
 from exit_decision.reward import RewardVector, StepRewardInputs, make_reward, scalar
@@ -145,12 +146,23 @@ class ExitDecisionEnv(gym.Env):
             vector = self.learning_reward_fn.vector(inputs)
         return result, vector
 
+    def rule_based_driver(self, parameters: RuleBasedConfig | None = None) -> RuleBasedDriver:
+        """The rule-based driver of this environment's CAVs: the neutral driver (env.yaml's
+        ``rule_based``, the same for every mode), or other ``parameters`` (the reward sanity sweep)."""
+        return RuleBasedDriver(self.actions, self.shield, self.sim.geometry, self.config.scenario.road.ramp_speed_limit,
+                               parameters or self.config.env.rule_based)
+
     def step(self, action):
-        return self.step_commands(self.commands(action))
+        """The gymnasium step: an action vector (a grid action or an option per CAV row); with
+        options, ``info`` also holds what the next decision needs (``_option_info``)."""
+        observation, reward, terminated, truncated, info = self.step_commands(self.commands(action))
+        return observation, reward, terminated, truncated, {**info, **self._option_info()}
 
     def step_commands(self, commands: dict):
-        """``step`` with the CAVs' commands given directly (vehicle id -> ``CavCommand``): the
-        options' low level makes commands that are not on the action grid."""
+        """``step`` with the CAVs' commands given directly (vehicle id -> ``CavCommand``): what
+        every driver gives (``driving``), the options' low level commands that are not on the
+        action grid. The one function outside the environment that steps it is
+        ``driving.episode.play_episode``."""
         graph = self.graph
         acting = {vehicle_id: row for vehicle_id, row in graph.row_of().items() if graph.cav_mask[row]}
         per_row = np.zeros((graph.num_nodes, 4, 2))
@@ -170,7 +182,7 @@ class ExitDecisionEnv(gym.Env):
                 break
         self.graph = self.graph_builder.build(result.vehicles, self.sim.snapshot)
         reward = float(scalar(per_row.sum(0) + shared, self.learning_weights))
-        info = {'step_results': results, 'reward_vector': (per_row, shared), **self._option_info()}
+        info = {'step_results': results, 'reward_vector': (per_row, shared)}
         return self._observation(), reward, result.terminated, result.truncated and not result.terminated, info
 
     def close(self) -> None:

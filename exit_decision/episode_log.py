@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from exit_decision.reward import scalar
-from exit_decision.traffic import StepResult, TrafficSnapshot
+from exit_decision.traffic import CAV, HV2, StepResult, TrafficSnapshot
 
 METRICS = ('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking', 'N_braking_CAV', 'braking_steps',
            'headway_CAV', 'p_CAV', 'p_HV2', 'reward', 'steps')
@@ -81,7 +81,7 @@ class EpisodeLog:
         return len(self.entered.get(vehicle_class, ()))
 
     def metrics(self) -> dict[str, float]:
-        n_cav, n_hv2 = self.count('CAV'), self.count('HV2')
+        n_cav, n_hv2 = self.count(CAV), self.count(HV2)
         nan = float('nan')
         return {
             'v_AVs': self.cav_speed_sum / self.cav_steps if self.cav_steps else nan,
@@ -92,8 +92,8 @@ class EpisodeLog:
             'N_braking_CAV': float(self.cav_braking_events),
             'braking_steps': float(self.braking_steps),
             'headway_CAV': self.headway_sum / self.headway_steps if self.headway_steps else nan,
-            'p_CAV': self.target_exits.get('CAV', 0) / n_cav if n_cav else nan,
-            'p_HV2': self.target_exits.get('HV2', 0) / n_hv2 if n_hv2 else nan,
+            'p_CAV': self.target_exits.get(CAV, 0) / n_cav if n_cav else nan,
+            'p_HV2': self.target_exits.get(HV2, 0) / n_hv2 if n_hv2 else nan,
             'reward': float(scalar(self.reward_vector, self.reward_weights)) if self.reward_weights is not None else nan,
             'steps': float(self.steps),
         }

@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
-from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, CavCommand, VehicleState,
+from exit_decision.traffic import (CAV, INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, CavCommand, VehicleState,
                                    vehicle_id_of)
 
 #: [m] SUMO's default lane width (the generated network sets none): the largest lateral offset
@@ -140,7 +140,7 @@ class StateLimits:
             raise _bad_field(v, 'length', f'the {v.vehicle_class} length {self.lengths[v.vehicle_class]:g}')
         if v.intention not in INTENTIONS:
             raise _bad_field(v, 'intention', 'one of -1, 0, 1')
-        if v.controlled and v.vehicle_class != 'CAV':
+        if v.controlled and v.vehicle_class != CAV:
             raise _bad_field(v, 'controlled', 'false for a human-driven class')
 
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from exit_decision.config import (BaselineRewardConfig, IntentionRewardConfig, MatrixRewardConfig, ModeConfig,
                                   RewardVariantConfig, TermsRewardConfig)
-from exit_decision.traffic import Neighbours, StepResult, TrafficSnapshot, VehicleState
+from exit_decision.traffic import CAV, HV2, Neighbours, StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
 RESULT, EFFICIENCY, COMFORT, SAFETY = range(4)
@@ -210,13 +210,13 @@ class MatrixReward:
             return own.setdefault(vehicle_id, np.zeros((4, 2)))
 
         for arrival in step.arrivals:
-            if arrival.reached_target and arrival.vehicle_class == 'CAV':
+            if arrival.reached_target and arrival.vehicle_class == CAV:
                 of(arrival.vehicle_id)[RESULT, INCENTIVE] += 300.0
-            elif arrival.reached_target and arrival.vehicle_class == 'HV2':
+            elif arrival.reached_target and arrival.vehicle_class == HV2:
                 shared[RESULT, INCENTIVE] += 300.0
         if step.collisions:
             colliders = sorted({vid for c in step.collisions for vid, cls in
-                                ((c.collider, c.collider_class), (c.victim, c.victim_class)) if cls == 'CAV'})
+                                ((c.collider, c.collider_class), (c.victim, c.victim_class)) if cls == CAV})
             for vehicle_id in colliders:
                 of(vehicle_id)[RESULT, PUNISHMENT] -= 60000.0 / len(colliders)
             if not colliders:
@@ -274,7 +274,7 @@ class BaselineReward(ModelessReward):
                 result.per_vehicle[vehicle.vehicle_id][EFFICIENCY, INCENTIVE] = \
                     c.speed * vehicle.speed / vehicle.lane_speed_limit
         for arrival in step.arrivals:
-            if arrival.vehicle_class == 'CAV' and arrival.reached_target:
+            if arrival.vehicle_class == CAV and arrival.reached_target:
                 result.per_vehicle.setdefault(arrival.vehicle_id, np.zeros((4, 2)))[RESULT, INCENTIVE] += c.intention
         for vehicle_id in step.lane_changers:
             if vehicle_id in result.per_vehicle:
@@ -288,7 +288,7 @@ def own_collisions(step: StepResult) -> tuple[dict[str, int], int]:
     per_cav: dict[str, int] = {}
     for collision in step.collisions:
         for vehicle_id, cls in ((collision.collider, collision.collider_class), (collision.victim, collision.victim_class)):
-            if cls == 'CAV':
+            if cls == CAV:
                 per_cav[vehicle_id] = per_cav.get(vehicle_id, 0) + 1
     return per_cav, sum(not c.involves_cav for c in step.collisions)
 
@@ -319,7 +319,7 @@ class TermsReward(ModelessReward):
             if vehicle_id in result.per_vehicle:
                 of(vehicle_id)[COMFORT, PUNISHMENT] += c.lane_change
         for arrival in step.arrivals:
-            if arrival.vehicle_class == 'CAV':
+            if arrival.vehicle_class == CAV:
                 of(arrival.vehicle_id)[RESULT, INCENTIVE] += c.clean_exit
         per_cav, without_cav = own_collisions(step)
         for vehicle_id, count in per_cav.items():
@@ -358,7 +358,7 @@ class IntentionReward(ModelessReward):
                 intention[vehicle.vehicle_id] = (c.step_weight * self.intention(vehicle),
                                                  vehicle.speed / c.speed_max - c.speed_offset)
         for arrival in step.arrivals:
-            if arrival.vehicle_class == 'CAV':
+            if arrival.vehicle_class == CAV:
                 intention[arrival.vehicle_id] = (c.reached if arrival.reached_target else c.missed, 1.0)
         for vehicle_id in intention.keys() | crash.keys():
             r_i, r_s = intention.get(vehicle_id, (0.0, 0.0))

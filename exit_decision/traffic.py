@@ -12,7 +12,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
+from exit_decision.config.schemas import CAV, HV1, HV2, HV3, VEHICLE_CLASSES  # noqa: F401 (the core's names)
+
 INTENTION_RIGHT, INTENTION_KEEP, INTENTION_LEFT = -1, 0, 1
 #: The corridor name of the highway's lanes: ``(HIGHWAY, lane_index)``. Empty, so no edge (a
 #: ramp's corridor is ``(edge_id, 0)``) can be called the same.
@@ -45,7 +46,7 @@ class VehicleState:
 
     @property
     def is_cav(self) -> bool:
-        return self.vehicle_class == 'CAV'
+        return self.vehicle_class == CAV
 
     @property
     def corridor(self) -> tuple[str, int]:
@@ -127,7 +128,7 @@ class Collision:
 
     @property
     def involves_cav(self) -> bool:
-        return 'CAV' in (self.collider_class, self.victim_class)
+        return CAV in (self.collider_class, self.victim_class)
 
 
 @dataclass(slots=True)

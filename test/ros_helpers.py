@@ -10,7 +10,7 @@ from exit_decision.actions import ActionGrid
 from exit_decision.config import default_config_dir, load_project
 from exit_decision.graph import FEATURE_SETS
 from exit_decision.model.networks import GraphQNetwork, NetworkShape
-from exit_decision.model.policy import save_policy
+from exit_decision.learning.checkpoints import save_policy
 
 SMALL_TRAFFIC = {'HV1': 4, 'HV2': 2, 'HV3': 2, 'CAV': 4}
 

@@ -4,10 +4,10 @@ import re
 
 import pytest
 
-from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import deep_merge, load_project
 from exit_decision.env import ExitDecisionEnv
-from exit_decision.evaluation.evaluate import EvaluationResult, run_episode
+from exit_decision.driving.fixed import rule_based
+from exit_decision.driving.episode import play_episode
 from exit_decision.scenario.geometry import RoadGeometry
 
 #: 9 vehicles, 3 of them CAVs, on a road with every section half its shipped length
@@ -35,32 +35,13 @@ def test_the_renamed_half_length_road_builds_with_its_names_and_lengths():
     assert {lane.edge_id for lane in geometry.lanes.values() if not lane.on_highway} == {'Ramp_X', 'Ramp_Y'}
 
 
-class StepCollector:
-    """Takes every simulation step of an episode (the evaluation's recorder interface)."""
-
-    def __init__(self):
-        self.results = []
-
-    def start(self, env):
-        pass
-
-    def decide(self, commands, overrides):
-        pass
-
-    def steps(self, results):
-        self.results += results
-
-    def finish(self):
-        pass
-
-
 def rule_based_episode(override: dict, seed: int):
     """The neutral rule-based driver's episode on a scenario: its step results and metrics."""
     env = ExitDecisionEnv(load_project(scenario_override=override))
     try:
-        collector = StepCollector()
-        metrics = run_episode(env, RuleBasedDriver.for_env(env), seed, EvaluationResult(), collector)
-        return collector.results, metrics
+        results = []
+        metrics = play_episode(env, rule_based(env), seed, lambda decision, info, *_: results.extend(info['step_results']))
+        return results, metrics
     finally:
         env.close()
 

@@ -8,7 +8,8 @@ import yaml
 
 from exit_decision.cli import main
 from exit_decision.config import ConfigError, default_config_dir, load_project
-from exit_decision.experiments.compare import LOG_FILES, Job, SweepResult, load_variants, run_on_ray
+from exit_decision.config import load_variants
+from exit_decision.experiments.compare import LOG_FILES, Job, SweepResult, run_on_ray
 from exit_decision.scenario.sumo_inputs import network_sources, routes_source
 
 HUMANS = ('HV1', 'HV2', 'HV3')

@@ -10,7 +10,9 @@ from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.replay import DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
 from exit_decision.model.networks import GraphQNetwork, NetworkShape, normalize_adjacency
-from exit_decision.model.policy import PolicyController, load_policy, save_policy
+from exit_decision.learning.checkpoints import save_policy
+from exit_decision.model.modes import Mode
+from exit_decision.model.policy import PolicyController, load_policy
 from exit_decision.reward import weights_of_input
 from exit_decision.traffic import TrafficSnapshot
 
@@ -270,7 +272,7 @@ def test_a_conditioned_network_answers_per_weight_vector():
         net(features, adjacency)
 
 
-def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
+def test_a_conditioned_checkpoint_decides_for_the_weights_of_its_mode(tmp_path):
     net = GraphQNetwork(NetworkShape(num_features=2, num_actions=A, num_weights=6))
     save_policy(tmp_path / 'c.pt', net, {'algorithm': 'mdgqn', 'mode': 'conditioned', 'action_grid': {
         'lane_changes': [-1, 0, 1], 'acceleration_min': -1.0, 'acceleration_max': 0.0, 'acceleration_step': 1.0}})
@@ -281,8 +283,8 @@ def test_a_conditioned_checkpoint_needs_weights_to_decide(tmp_path):
     expected = net(torch.from_numpy(g.features)[None], torch.from_numpy(g.adjacency)[None],
                    torch.tensor(w, dtype=torch.float32)[None])[0].detach().numpy()
     np.testing.assert_allclose(policy.q_values(g, TrafficSnapshot([]), w), expected, rtol=1e-6)
-    with pytest.raises(PolicyError, match='needs the mode weights'):
-        PolicyController(policy, shield=None).decide(g, TrafficSnapshot([]))
+    controller = PolicyController(policy, shield=None)
+    np.testing.assert_array_equal(controller.network_weights(Mode('custom', w)), w)
 
 
 def test_relabelled_rewards_score_each_transition_under_its_own_weights():

@@ -12,6 +12,8 @@ from exit_decision.encoders import GRID_CELLS, StateEncoder
 from exit_decision.graph import GraphBuilder
 from exit_decision.learning.replay import PrioritizedSampler
 from exit_decision.learning.trainer import Trainer
+from exit_decision.driving.policy import PolicyDriver
+from exit_decision.model.modes import ModeWeights
 from exit_decision.model.policy import PolicyController, load_policy
 from exit_decision.traffic import INTENTION_LEFT, TrafficSnapshot
 from test_training import TINY, rows
@@ -87,14 +89,15 @@ def test_each_method_trains_and_leaves_an_evaluable_checkpoint(method, config_di
     assert all(math.isfinite(float(row['loss'])) for row in log)
     assert policy.metadata['algorithm'] == method and policy.encoder.name == config.training.method(method).encoder
     env = trainer.env.__class__(config, mode='CONP')
-    controller = PolicyController(policy, env.shield, planner=env.planner)   # what evaluation and the node run
+    driver = PolicyDriver(PolicyController(policy, env.shield, planner=env.planner), None,
+                          ModeWeights(config).mode('CONP'))   # what evaluation and the node run
     decided = 0
     try:
         env.reset(seed=10_000)
         for _ in range(30):
             q = policy.q_values(env.graph, env.sim.snapshot)
             assert q.shape == (config.graph.max_vehicles, trainer.env.actions.size) and np.isfinite(q).all()
-            decision = controller.decide(env.graph, env.sim.snapshot)
+            decision = driver.decide(env.graph, env.sim.snapshot, env.sim.state.time)
             decided += len(decision.actions)
             env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
     finally:
@@ -142,6 +145,7 @@ def test_a_baseline_as_published_learns_its_papers_reward_without_our_measures(m
         env.reset(seed=10_000)
         while not env.graph.cav_mask.any():
             env.step(np.full(env.graph.num_nodes, env.actions.index(0, 0.0)))
-        assert controller.decide(env.graph, env.sim.snapshot).actions, 'the checkpoint decides'
+        driver = PolicyDriver(controller, None, ModeWeights(config).mode('CONP'))
+        assert driver.decide(env.graph, env.sim.snapshot, env.sim.state.time).actions, 'the checkpoint decides'
     finally:
         env.close()

@@ -75,18 +75,20 @@ def test_weight_inputs_are_checked_with_a_reason(weights, reason):
         assert re.search(reason, result)
 
 
-def test_a_mode_name_and_its_weights_both_ways(project_config):
+def test_a_mode_is_one_value_made_from_its_name_or_its_weights(project_config):
     modes = ModeWeights(project_config)
-    for name, mode in project_config.modes.items():
-        weights = modes.weights(name)
-        np.testing.assert_array_equal(weights, weight_input(mode))
-        assert modes.name(weights) in project_config.modes
-        assert name in modes
-    aggressive = modes.weights('AGGI')
-    assert modes.name(aggressive.tolist()) == 'AGGI' and modes.name(aggressive + 1e-12) == 'AGGI'
-    assert modes.name([0.25, 0.25, 0.25, 0.25, 0.5, 0.5]) == CUSTOM_MODE and CUSTOM_MODE not in modes
+    for name, config_mode in project_config.modes.items():
+        mode = modes.mode(name)
+        assert mode.name == name and name in modes
+        np.testing.assert_array_equal(mode.weights, weight_input(config_mode))
+        assert modes.of_weights(mode.weights).name in project_config.modes
+    aggressive = modes.mode('AGGI').weights
+    assert modes.of_weights(aggressive.tolist()).name == 'AGGI' and modes.of_weights(aggressive + 1e-12).name == 'AGGI'
+    assert modes.of_weights([0.25, 0.25, 0.25, 0.25, 0.5, 0.5]).name == CUSTOM_MODE and CUSTOM_MODE not in modes
     with pytest.raises(ConfigError, match="unknown mode 'FAST'"):
-        modes.weights('FAST')
+        modes.mode('FAST')
+    with pytest.raises(ValueError, match='sum to 1'):
+        modes.of_weights([0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
 
 
 @pytest.fixture(scope='module')
@@ -99,7 +101,8 @@ def deciding(project_config):
     return shield, LanePlanner.of(config, shield), idle
 
 
-def test_the_shipped_policies_load_by_algorithm_and_mode_and_decide_for_the_weights_given(project_config, deciding):
+def test_the_shipped_policies_load_by_algorithm_and_mode_and_drive_in_the_mode_bound(project_config, deciding):
+    from exit_decision.driving.policy import policy_driver
     from exit_decision.model.policy import load_controllers
 
     shield, planner, idle = deciding
@@ -112,20 +115,22 @@ def test_the_shipped_policies_load_by_algorithm_and_mode_and_decide_for_the_weig
         GRID_ALGORITHM: 'grid', DEFAULT_ALGORITHM: 'options', 'gqn_options_conditioned': 'options'}
     assert controllers[('gqn', 'AGGI')].policy.action_space == 'grid', 'checkpoints without one: the grid'
     empty = TrafficSnapshot([])
-    conditioned = controllers[(GRID_ALGORITHM, None)]
+    conditioned = policy_driver(controllers[(GRID_ALGORITHM, None)], project_config)
+    with pytest.raises(PolicyError, match='no mode set'):
+        conditioned.decide(idle, empty, 0.0)
     for mode in matrix:
-        conditioned.decide(idle, empty, modes.weights(mode))
-    with pytest.raises(PolicyError, match='needs the mode weights'):
-        conditioned.decide(idle, empty)
-    per_mode = controllers[('gqn', 'AGGI')]
-    per_mode.decide(idle, empty)                          # None: its own mode
-    per_mode.decide(idle, empty, modes.weights('AGGI'))   # its own mode's weights
-    with pytest.raises(PolicyError) as refused:
-        per_mode.decide(idle, empty, modes.weights('CONP'))
-    message = str(refused.value)
-    assert '\n' not in message and "a policy of mode 'AGGI' decides for that mode only" in message
-    with pytest.raises(PolicyError, match='decides for that mode only'):
-        per_mode.at([0.25, 0.25, 0.25, 0.25, 0.5, 0.5])   # refused when bound, not at the first decision
+        conditioned.set_mode(modes.mode(mode))
+        conditioned.decide(idle, empty, 0.0)
+    conditioned.set_mode(modes.of_weights([0.25, 0.25, 0.25, 0.25, 0.5, 0.5]))   # any point
+    conditioned.decide(idle, empty, 0.0)
+    per_mode = policy_driver(controllers[('gqn', 'AGGI')], project_config, modes.mode('AGGI'))   # its own mode
+    per_mode.decide(idle, empty, 0.0)
+    for other in (modes.mode('CONP'), modes.of_weights([0.25, 0.25, 0.25, 0.25, 0.5, 0.5])):
+        with pytest.raises(PolicyError) as refused:   # refused when bound, not at the first decision
+            per_mode.set_mode(other)
+        message = str(refused.value)
+        assert '\n' not in message and "a policy of mode 'AGGI' decides for that mode only" in message
+    assert per_mode.mode.name == 'AGGI', 'a refused mode changes nothing'
 
 
 def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding):

@@ -148,13 +148,14 @@ def test_unknown_style_keys_are_refused_at_load(tmp_path):
 def test_a_constant_option_drives_a_whole_episode_to_the_target_exit(project_config):
     """The env, the executor and the low level together: the neutral style on the route's lane
     plan, one real episode; the commands are off the grid."""
+    from exit_decision.driving.episode import play_episode
+    from exit_decision.driving.fixed import constant_option
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import constant_option, run_option_episode
 
     env = ExitDecisionEnv(project_config)
     try:
-        space = OptionSpace(project_config, env.shield, env.planner)
-        executor = OptionExecutor(space)
+        driver = constant_option(OptionSpace(project_config, env.shield, env.planner), 'neutral')
+        executor = driver.executor
         accelerations = []
         commands = executor.commands
 
@@ -164,7 +165,7 @@ def test_a_constant_option_drives_a_whole_episode_to_the_target_exit(project_con
             return result
 
         executor.commands = recorded
-        metrics = run_option_episode(env, executor, constant_option(space.index('route', 'neutral')), 10)
+        metrics = play_episode(env, driver, 10)
     finally:
         env.close()
     assert metrics['p_CAV'] == 1.0 and metrics['p_collision_CAV'] == 0.0
@@ -181,7 +182,7 @@ def test_the_best_fixed_driver_is_the_best_constant_option_per_mode():
     rows = [row(run, seed, aggi + seed, coni + seed) for seed in (1, 2, 3)
             for run, aggi, coni in [('option_neutral', 10, 10), ('option_close', 11, 9), ('option_calm', 8, 12),
                                     ('sumo', 20, 20)]]
-    text = table_markdown(rows, ['AGGI', 'CONI'], 'v')
+    text = table_markdown(rows, ['AGGI', 'CONI'], 'v', 'option_neutral')
     assert "AGGI `option_close`" in text and "CONI `option_calm`" in text, 'references are not fixed options'
     assert '+1.000 [+1.000, +1.000] ↑' in text
 
@@ -196,7 +197,7 @@ def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo
             for run, aggi, coni, speed in [('option_neutral', 10, 10, 15), ('option_close', 11, 9, 16),
                                            ('option_calm', 8, 12, 14), ('sumo', 9, 9, 15),
                                            ('shipped@AGGI', 12, 0, 17), ('shipped@CONI', 0, 13, 13)]]
-    lines = readme_table(rows, ['AGGI', 'CONI'], 'v', 'shipped').splitlines()
+    lines = readme_table(rows, ['AGGI', 'CONI'], 'v', 'shipped', 'option_neutral').splitlines()
     aggi = [line for line in lines if line.startswith('| AGGI |')]
     assert [line.split(' | ')[1] for line in aggi] == [
         'the shipped policy', 'the best fixed driver (`close`)', 'the neutral driver', "SUMO's drivers"]
@@ -206,7 +207,7 @@ def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo
     assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ |')
     assert lines[-1].endswith("The shipped policy's return: against the best fixed driver, above under AGGI, CONI; "
                               "against SUMO's drivers, above under AGGI, CONI.")
-    assert len(readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped').splitlines()) == 2 + 3 + 2
+    assert len(readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped', 'option_neutral').splitlines()) == 2 + 3 + 2
 
 
 def test_the_env_over_options_reads_only_the_choosing_rows(project_config):
@@ -274,7 +275,7 @@ def test_report_writes_the_readme_table_between_its_markers_and_refuses_a_readme
 def test_a_policy_driver_over_options_runs_the_network_only_when_a_cav_begins_an_option(tmp_path):
     from exit_decision.config import default_config_dir
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.model.driving import PolicyDriver
+    from exit_decision.driving.policy import policy_driver
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.policy import load_controller
     from ros_helpers import random_policies
@@ -291,16 +292,14 @@ def test_a_policy_driver_over_options_runs_the_network_only_when_a_cav_begins_an
         forward = controller.policy.q_values
         calls = []
         controller.policy.q_values = lambda *args: calls.append(1) or forward(*args)
-        driver = PolicyDriver(controller, config)
-        weights = ModeWeights(config).weights('AGGP')
-        driver.decide(env.graph, env.sim.snapshot, weights, 0.0)
-        assert len(calls) == 1 and set(driver.executor.held) == set(env.graph.cav_ids()), \
+        driver = policy_driver(controller, config, ModeWeights(config).mode('AGGP'))
+        decision = driver.decide(env.graph, env.sim.snapshot, 0.0)
+        assert len(calls) == 1 and set(decision.options) == set(env.graph.cav_ids()) == decision.began, \
             'the first decision begins every CAV an option'
-        driver.decide(env.graph, env.sim.snapshot, weights, 0.5)
-        assert len(calls) == 1, 'every option is held: no forward pass'
-        driver.reset()
-        driver.decide(env.graph, env.sim.snapshot, weights, 0.5)
-        assert len(calls) == 2
+        decision = driver.decide(env.graph, env.sim.snapshot, 0.5)
+        assert len(calls) == 1 and not decision.began, 'every option is held: no forward pass'
+        driver.set_mode(ModeWeights(config).mode('CONP'))   # a switch ends every option
+        assert driver.decide(env.graph, env.sim.snapshot, 0.5).began and len(calls) == 2
     finally:
         env.close()
 
@@ -315,7 +314,7 @@ def test_the_options_table_says_whether_a_policy_drives_its_modes_as_they_are_na
             for run, speed, headway in [('option_neutral', 15, 1.8), ('sumo', 15, 1.8), ('p@AGGI', 16, 1.5),
                                         ('p@CONI', 15, 2.0), ('q@AGGI', 15, 2.0), ('q@CONI', 16, 1.5)]]
     rows[-4]['headway_CAV'] = float('nan')   # p@AGGI on seed 3 had no leader in range: left out of the headway
-    text = table_markdown(rows, ['AGGI', 'CONI'], 'v', orderings=[('AGGI', 'CONI')])
+    text = table_markdown(rows, ['AGGI', 'CONI'], 'v', 'option_neutral', orderings=[('AGGI', 'CONI')])
     assert ('- `p`: AGGI − CONI speed +1.000 m/s [+1.000, +1.000] (as named); '
             'CONI − AGGI time headway +0.500 s [+0.500, +0.500] (as named)') in text
     assert '- `q`: AGGI − CONI speed -1.000 m/s [-1.000, -1.000] (reversed)' in text
@@ -329,7 +328,7 @@ def test_the_readme_table_gives_one_row_when_the_neutral_driver_is_the_best_fixe
                 **dict.fromkeys(('v_AVs', 'headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
     rows = [row(run, seed, aggi + seed) for seed in (1, 2) for run, aggi in
             [('option_neutral', 10), ('option_close', 9), ('sumo', 9), ('p@AGGI', 9)]]
-    lines = [line for line in readme_table(rows, ['AGGI'], 'v', 'p').splitlines() if line.startswith('| AGGI')]
+    lines = [line for line in readme_table(rows, ['AGGI'], 'v', 'p', 'option_neutral').splitlines() if line.startswith('| AGGI')]
     assert [line.split(' | ')[1] for line in lines] == [
         'the shipped policy', 'the best fixed driver (`neutral`, the neutral driver)', "SUMO's drivers"]
     assert lines[0].endswith('-1.000 [-1.000, -1.000] ↓ |') and lines[1].endswith('— |')

@@ -43,5 +43,5 @@ def test_a_per_mode_policy_refuses_the_other_modes_decisions_in_one_line():
     AGGP part and refuses at the first CONP decision, instead of deciding it as AGGP."""
     config = load_project(None, overrides=[FIXTURE / 'override.yaml'])
     shipped = policy_path(default_policy_dir(), 'gqn', 'AGGP')
-    with pytest.raises(PolicyError, match=r"a policy of mode 'AGGP' decides for that mode only, not for weights \["):
+    with pytest.raises(PolicyError, match=r"a policy of mode 'AGGP' decides for that mode only, not for mode 'CONP' \(weights \["):
         replay_decisions(FIXTURE / 'bag', config, default_policy_dir(), policy_file=shipped, rebuild_graph=True)

@@ -33,7 +33,7 @@ def rows(path):
 def test_conditioned_training_run_and_its_evaluation_at_every_mode(config_dir, tmp_path):
     config = load_project(config_dir, overrides=[TINY])
     trainer = Trainer(config, 'mdgqn', 'conditioned', 0, tmp_path / 'run')
-    assert trainer.collector.demonstrator.parameters == config.env.rule_based, 'one neutral teacher'
+    assert trainer.collector.demonstrator.choose.__self__.parameters == config.env.rule_based, 'one neutral teacher'
     policy_path = trainer.run(episodes=2, progress=False)
     log = rows(tmp_path / 'run' / 'training.csv')
     assert len(log) == 2 and all(math.isfinite(float(row['loss'])) for row in log)
@@ -142,10 +142,10 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
     evaluate_runs(config, [policy_path], [], ['AGGI'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
                   command='test')
     assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_options_conditioned_AGGI']['p_CAV'][0] <= 1.0
-    from exit_decision.experiments.constant_options import run_table, table_markdown
+    from exit_decision.experiments.constant_options import neutral_run, run_table, table_markdown
     variant = config.env.reward_variant
     text = table_markdown(run_table(config, [10_000, 10_001], [variant], 1, {'learned': policy_path}), ['AGGI', 'CONP'],
-                          variant)
+                          variant, neutral_run(config))
     assert '| policy | mode |' in text and '\n| learned | AGGI |' in text and '\n| learned | CONP |' in text, 'judged per mode'
     env = ExitDecisionEnv(config)
     try:

@@ -340,13 +340,14 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
 def test_evaluate_show_draws_the_first_episodes_of_a_run_without_ros(tmp_path):
     from exit_decision.config import load_project
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import run_episodes
+    from exit_decision.driving.fixed import sumo
+    from exit_decision.evaluation.evaluate import play_episodes
     from exit_decision.visualization.episodes import ShowEpisodes
     from ros_helpers import small_config_dir
 
     env = ExitDecisionEnv(load_project(small_config_dir(tmp_path / 'config')), cav_driver='sumo')
     try:
-        played = run_episodes(env, None, [7, 8], show=ShowEpisodes(tmp_path / 'show', 1).named('sumo', 'CONI'))
+        played = play_episodes(env, sumo(), [7, 8], show=ShowEpisodes(tmp_path / 'show', 1).named('sumo', 'CONI'))
         entered = sum(len(ids) for ids in env.episode_log.entered.values())
     finally:
         env.close()
@@ -461,42 +462,43 @@ def test_show_reads_the_replay_fixture_recorded_before_overrides_had_a_topic(pro
 
 @pytest.mark.parametrize('driver', ['rule_based', 'policy'])
 def test_the_cavs_found_overridden_are_those_the_shield_counted(tmp_path, driver):
-    from exit_decision.agents.rule_based import RuleBasedDriver
     from exit_decision.config import load_project
+    from exit_decision.driving.episode import play_episode
+    from exit_decision.driving.fixed import GridDriver
+    from exit_decision.driving.policy import policy_driver
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.names import GRID_ALGORITHM, default_policy_dir, policy_path
     from exit_decision.model.policy import load_controller
-    from exit_decision.shield_overrides import shield_overrides
     from ros_helpers import small_config_dir
 
     config = load_project(small_config_dir(tmp_path / 'config'))
     env = ExitDecisionEnv(config)
     if driver == 'rule_based':
-        controller = RuleBasedDriver.for_env(env)
+        choose = env.rule_based_driver().decide
     else:
-        controller = load_controller(config, policy_path(default_policy_dir(), GRID_ALGORITHM), env.shield,
-                                     env.planner).at(ModeWeights(config).weights('AGGP'))
-    found = counted = 0
+        choose = policy_driver(load_controller(config, policy_path(default_policy_dir(), GRID_ALGORITHM), env.shield,
+                                               env.planner), config, ModeWeights(config).mode('AGGP')).grid_decision
+    decisions, totals = [], {'found': 0, 'counted': 0}
+
+    def recorded(graph, snapshot):
+        decisions.append(choose(graph, snapshot))
+        return decisions[-1]
+
+    def check(step, info, terminated, truncated):
+        decision = decisions[-1]
+        assert len(step.overrides) == decision.overridden
+        for vehicle_id, override in step.overrides.items():
+            assert override.applied == env.actions.command(decision.actions[vehicle_id]) == step.commands[vehicle_id]
+            assert override.preferred != override.applied
+        totals['found'] += len(step.overrides)
+        totals['counted'] += decision.overridden
+
     try:
-        env.reset(seed=7)
-        done = False
-        while not done:
-            decision = controller.decide(env.graph, env.sim.snapshot)
-            overrides = shield_overrides(decision, env.actions)
-            assert len(overrides) == decision.overridden
-            for vehicle_id, override in overrides.items():
-                assert override.applied == env.actions.command(decision.actions[vehicle_id])
-                assert override.preferred != override.applied
-            found, counted = found + len(overrides), counted + decision.overridden
-            action = np.full(env.graph.num_nodes, env.actions.index(0, 0.0))
-            for vehicle_id, index in decision.actions.items():
-                action[env.graph.row_of()[vehicle_id]] = index
-            _, _, terminated, truncated, _ = env.step(action)
-            done = terminated or truncated
+        play_episode(env, GridDriver(driver, env.actions, recorded), 7, check)
     finally:
         env.close()
-    assert counted > 0, 'the episode has overrides to find'
+    assert totals['counted'] > 0, 'the episode has overrides to find'
 
 
 def test_the_option_a_cav_holds_is_written_under_its_id_and_goes_with_it(layout):

@@ -9,7 +9,6 @@ Every choice is made under the same shield as the learned policy, and quantised 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,8 +19,6 @@ from exit_decision.graph import TrafficGraph
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.traffic import HIGHWAY, CavCommand, TrafficSnapshot, VehicleState
 
-if TYPE_CHECKING:
-    from exit_decision.env import ExitDecisionEnv
 
 
 class RuleBasedDriver:
@@ -34,13 +31,6 @@ class RuleBasedDriver:
         self.geometry = geometry
         self.ramp_speed_limit = ramp_speed_limit
         self.parameters = parameters
-
-    @classmethod
-    def for_env(cls, env: ExitDecisionEnv, parameters: RuleBasedConfig | None = None) -> RuleBasedDriver:
-        """The neutral driver for an environment's CAVs (env.yaml's ``rule_based``, the same for
-        every mode), or other ``parameters`` (the reward sanity sweep)."""
-        return cls(env.actions, env.shield, env.sim.geometry, env.config.scenario.road.ramp_speed_limit,
-                   parameters or env.config.env.rule_based)
 
     def target_lane(self, vehicle: VehicleState) -> int:
         """The route lane nearest to lane 0 (before the first exit: lane 1, one change from the

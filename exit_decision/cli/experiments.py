@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from exit_decision.config.seeds import SANITY_SEED, TEST_SEED, VALIDATION_SEED
 from exit_decision.cli.arguments import (COUNT, SEED, STEP, OptionError, checkpoint, config_options, existing, known,
                                          number)
 from exit_decision.config import ConfigError, default_config_dir, load_project
@@ -91,9 +92,9 @@ def cmd_tradeoff(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     """Train the learned methods (``--train``), then every method on every scenario variant, the
     same seeds, as Ray tasks; CSV per cell; the comparison page and its figures."""
+    from exit_decision.config import load_variants
     from exit_decision.experiments.compare import (REFERENCE_DRIVERS, SweepResult, default_methods,
-                                                   load_comparison_training, load_variants, plan_cells, run_sweep,
-                                                   run_trainings)
+                                                   load_comparison_training, plan_cells, run_sweep, run_trainings)
     from exit_decision.experiments.comparison_report import write_comparison
 
     config_dir = args.config_dir or default_config_dir()
@@ -161,7 +162,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     ablation.add_argument('--episodes', type=COUNT, default=40, help='training episodes per step')
     ablation.add_argument('--test-episodes', type=COUNT, default=10)
     ablation.add_argument('--seed', type=SEED, default=0)
-    ablation.add_argument('--test-seed', type=SEED, default=10_000)
+    ablation.add_argument('--test-seed', type=SEED, default=TEST_SEED)
     ablation.add_argument('--only', type=STEP, nargs='*', default=None, help='step indices to run')
     ablation.add_argument('--out', type=Path, default=Path('runs/ablation'))
     ablation.set_defaults(func=cmd_ablation)
@@ -173,7 +174,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     sanity.add_argument('--variant', action='append', default=[],
                         help='reward variant to score under (repeatable; default: env.yaml\'s)')
     sanity.add_argument('--episodes', type=COUNT, default=30, help='paired seeds per driver')
-    sanity.add_argument('--seed', type=SEED, default=20_000, help='first seed (not a test or training seed)')
+    sanity.add_argument('--seed', type=SEED, default=SANITY_SEED, help='first seed (not a test or training seed)')
     sanity.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
     sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'))
     sanity.add_argument('--low-level', choices=['grid', 'options'], default='grid',
@@ -187,7 +188,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                                                          'fixed driver per mode), with the references')
     config_options(options)
     options.add_argument('--episodes', type=COUNT, default=50, help='paired seeds per run')
-    options.add_argument('--seed', type=SEED, default=900_000,
+    options.add_argument('--seed', type=SEED, default=VALIDATION_SEED,
                          help='first seed (default: the validation seeds; 10000: the test seeds)')
     options.add_argument('--variant', action='append', default=[],
                          help='reward variant to score under (repeatable; default: env.yaml\'s)')
@@ -237,7 +238,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     compare.add_argument('--mode', action='append', default=[],
                          help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
     compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')
-    compare.add_argument('--seed', type=SEED, default=10_000, help='first test seed (never used in training)')
+    compare.add_argument('--seed', type=SEED, default=TEST_SEED, help='first test seed (never used in training)')
     compare.add_argument('--out', type=Path, default=Path('runs/compare'))
     compare.add_argument('--address', default=None,
                          help='a Ray cluster to run on (its nodes need this package, SUMO and the policy files); '

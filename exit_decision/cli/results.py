@@ -23,7 +23,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Write the results page from evaluation, ablation and figures, and the README's results
     table from the options table of the test seeds."""
     from exit_decision.evaluation.report import results_page, write_readme_table
-    from exit_decision.experiments.constant_options import readme_table
+    from exit_decision.experiments.constant_options import neutral_run, readme_table
     from exit_decision.tables import read_rows
 
     config = load_project(args.config_dir)
@@ -31,7 +31,7 @@ def cmd_report(args: argparse.Namespace) -> int:
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings,
                        options_dir=args.options_table))
     table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
-                         config.env.reward_variant, DEFAULT_ALGORITHM)
+                         config.env.reward_variant, DEFAULT_ALGORITHM, neutral_run(config))
     made_by = (args.options_table / 'constant_options.md').read_text(encoding='utf-8').split('`')[1]
     print(write_readme_table(args.readme, table, made_by))
     return 0

@@ -7,6 +7,7 @@ import signal
 import sys
 from pathlib import Path
 
+from exit_decision.config.seeds import TEST_SEED
 from exit_decision.cli.arguments import SEED, STEP, OptionError, existing, known, known_algorithm, new_path, number
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
@@ -119,7 +120,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     stack.add_argument('--episodes', type=number(int, 0), default=1,
                        help='episodes to run (default 1); 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
                             'finish the bag)')
-    stack.add_argument('--seed', type=SEED, default=10_000)
+    stack.add_argument('--seed', type=SEED, default=TEST_SEED)
     stack.add_argument('--bag', type=new_path, default=None,
                        help='bag directory, a new one (default bags/exit_decision_<time>)')
     stack.add_argument('--compression', choices=STACK_ARGUMENTS['compression'].choices,

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, StringConstraints
 
 from exit_decision.config.schemas import (
     PUBLISHED_SUFFIX, ActionGridConfig, ActionSpaceName, BaselineRewardConfig, ConfigError, EnvConfig,
@@ -23,7 +24,7 @@ __all__ = ['CONFIG_FILES', 'PUBLISHED_SUFFIX', 'ActionGridConfig', 'ActionSpaceN
            'ExplorationConfig', 'GraphConfig', 'IntentionRewardConfig', 'MatrixRewardConfig', 'ModeConfig',
            'PrioritizedReplayConfig', 'ProjectConfig', 'RewardVariantConfig', 'RoadConfig', 'RoadNames', 'RuleBasedConfig',
            'ScenarioConfig', 'ShieldConfig', 'TermsRewardConfig', 'TrainingConfig', 'ValidationConfig', 'deep_merge',
-           'default_config_dir', 'load', 'load_project', 'load_yaml', 'parse']
+           'default_config_dir', 'load', 'load_project', 'load_variants', 'load_yaml', 'parse']
 
 
 def default_config_dir() -> Path:
@@ -146,3 +147,29 @@ def load_project(config_dir: Path | str | None = None, scenario_override: Path |
                 raise ConfigError(f'{sources["training"]}: conditioning.{key}: unknown mode {name!r}; '
                                   f'known modes: {", ".join(config.modes)}')
     return config
+
+
+CellName = Annotated[str, StringConstraints(pattern=r'^[A-Za-z0-9_.-]+$')]   # a directory name
+
+
+class VariantsFile(BaseModel):
+    """config/variants.yaml: the scenario cells of the sweeps, each an override of scenario.yaml."""
+    model_config = ConfigDict(extra='forbid', frozen=True)
+    cells: dict[CellName, dict]
+
+
+def load_variants(path: Path, config_dir: Path | None = None, overrides: Sequence = (),
+                  only: Sequence[str] = ()) -> dict[str, ProjectConfig]:
+    """The project config of each cell of a variants file (or of the cells named in ``only``);
+    errors name the file and the cell."""
+    variants = parse(VariantsFile, load_yaml(path), path).cells
+    unknown = [name for name in only if name not in variants]
+    if unknown:
+        raise ConfigError(f'{path}: no cell {", ".join(map(repr, unknown))}; cells: {", ".join(variants)}')
+    configs = {}
+    for name in only or variants:
+        try:
+            configs[name] = load_project(config_dir, variants[name], overrides)
+        except ConfigError as error:
+            raise ConfigError(f'{path}: cells.{name} (merged over scenario.yaml): {error}') from None
+    return configs

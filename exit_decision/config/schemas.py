@@ -112,7 +112,9 @@ class VehicleTypeConfig(Strict):
     car_following: Literal['IDM', 'Krauss', 'EIDM']
 
 
-VEHICLE_CLASSES = ('HV1', 'HV2', 'HV3', 'CAV')
+#: the vehicle classes of the scenario (paper 000 Table 1), the one place they are named
+HV1, HV2, HV3, CAV = 'HV1', 'HV2', 'HV3', 'CAV'
+VEHICLE_CLASSES = (HV1, HV2, HV3, CAV)
 
 
 class ScenarioConfig(Strict):
@@ -121,8 +123,8 @@ class ScenarioConfig(Strict):
     sumo_seed_offset: Count
     road: RoadConfig
     collision: CollisionConfig
-    vehicle_classes: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleClassConfig]
-    vehicle_types: dict[Literal['HV1', 'HV2', 'HV3', 'CAV'], VehicleTypeConfig]
+    vehicle_classes: dict[Literal[VEHICLE_CLASSES], VehicleClassConfig]
+    vehicle_types: dict[Literal[VEHICLE_CLASSES], VehicleTypeConfig]
     emergency_braking_threshold: NegativeFloat
 
     @model_validator(mode='after')
@@ -135,7 +137,7 @@ class ScenarioConfig(Strict):
             if isinstance(cls.depart_lane, int) and cls.depart_lane >= self.road.lane_count:
                 raise ValueError(f'vehicle_classes.{name}.depart_lane: {cls.depart_lane} is not a '
                                  f'lane of a {self.road.lane_count}-lane road')
-        if self.vehicle_classes['HV2'].right_change_clearance is None:
+        if self.vehicle_classes[HV2].right_change_clearance is None:
             raise ValueError('vehicle_classes.HV2.right_change_clearance: required')
         return self
 
@@ -335,6 +337,12 @@ class OptionsConfig(Strict):
     styles: dict[str, dict[str, float]]          # name -> rule_based keys over env.yaml's and low_level
     planner_style: str | None = None             # the style of a CAV the lane planner drives (None: its option's)
     route_only_before: NonNegativeFloat = 0.0    # [m] before the first exit's junction end: route intents only
+
+    @property
+    def neutral_style(self) -> str:
+        """The neutral driver's style: the planner's (``planner_style``), else the first style.
+        The demonstrations and the tables' reference drive it."""
+        return self.planner_style or next(iter(self.styles))
 
     @model_validator(mode='after')
     def _styles(self) -> OptionsConfig:

@@ -22,11 +22,12 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from exit_decision.evaluation.statistics import paired_interval  # noqa: E402
+from exit_decision.evaluation.report import TEACHER  # noqa: E402
+from exit_decision.evaluation.statistics import paired_differences, paired_interval  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
 SMOOTHING = 10   # episodes in the rolling mean of training curves
-REFERENCE = 'rule_based'   # the driver test returns are drawn against (evaluation.report.TEACHER)
+REFERENCE = TEACHER   # the driver test returns are drawn against
 
 
 def read_csv(path: Path) -> dict[str, np.ndarray]:
@@ -161,6 +162,11 @@ def mode_panels(modes: list[str], drivers: list[str], width: float = 3.2):
     return fig, axes[0]
 
 
+def _rows(columns: dict) -> list[dict]:
+    """A run's seed and reward columns as rows (``statistics.paired_differences`` pairs rows)."""
+    return [{'seed': seed, 'reward': reward} for seed, reward in zip(columns['seed'], columns['reward'])]
+
+
 def test_reward(evaluation_dir: Path, out: Path, reference: str = REFERENCE) -> Path | None:
     """Per mode, each driver's test return minus the reference driver's on the same seeds (mean
     and 95% interval; the reference is the line at 0, its mean return in the panel's title),
@@ -176,10 +182,8 @@ def test_reward(evaluation_dir: Path, out: Path, reference: str = REFERENCE) -> 
         return None
     fig, axes = mode_panels(modes, shown)
     for ax, mode in zip(axes, modes):
-        theirs = {}
         if has_reference:
             ref = runs[label_of[reference, mode]]
-            theirs = dict(zip(ref['seed'], ref['reward']))
             ax.axvline(0.0, color='black', lw=1.0)
             ax.set_title(f'{mode} ({reference}: {np.mean(ref["reward"]):.2f})' if mode else
                          f'{reference}: {np.mean(ref["reward"]):.2f}', fontsize=10)
@@ -187,8 +191,7 @@ def test_reward(evaluation_dir: Path, out: Path, reference: str = REFERENCE) -> 
             data = runs.get(label_of.get((driver, mode), ''))
             if data is None:
                 continue
-            values = ([r - theirs[s] for s, r in zip(data['seed'], data['reward']) if s in theirs]
-                      if has_reference else data['reward'])
+            values = paired_differences(_rows(data), _rows(ref), 'reward') if has_reference else data['reward']
             mean, low, high = paired_interval(values)
             if np.isfinite(low):
                 ax.plot([low, high], [row, row], color='tab:blue', lw=2.5, solid_capstyle='butt')

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from exit_decision.actions import ActionGrid
-from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ProjectConfig, RuleBasedConfig
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import UsageError
-from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, run_episodes, scored_episodes
+from exit_decision.driving import fixed
+from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, play_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
-from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.evaluation.statistics import paired_difference, paired_interval
 from exit_decision.model.names import GRID_ALGORITHM, is_conditioned, method_of, run_name
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
@@ -84,10 +84,9 @@ def driver_runs(config: ProjectConfig, driver: str, modes: Sequence[str], seeds:
     parameters = sanity_drivers[variant] if variant else None
     env = ExitDecisionEnv(config, mode=modes[0], cav_driver='sumo' if name == SUMO else 'policy')
     try:
-        controller = None if name == SUMO else RuleBasedDriver.for_env(env, parameters)
         result = EvaluationResult()
-        played = run_episodes(env, controller, seeds, result, desc=driver,
-                              show=show and show.named(driver.replace(':', '_')))
+        played = play_episodes(env, fixed.sumo() if name == SUMO else fixed.rule_based(env, parameters), seeds,
+                               result, desc=driver, show=show and show.named(driver.replace(':', '_')))
     finally:
         env.close()
     label = driver.replace(':', '_')
@@ -125,7 +124,6 @@ def paired_comparison(runs: Sequence[EvaluatedRun], modes: Sequence[str], max_st
         teacher = by_label.get(f'{TEACHER}_{mode}')
         if teacher is None:
             continue
-        theirs = {e['seed']: e for e in teacher.episodes}
         for run in runs:
             if not run.label.endswith(f'_{mode}') or run is teacher:
                 continue
@@ -133,10 +131,9 @@ def paired_comparison(runs: Sequence[EvaluatedRun], modes: Sequence[str], max_st
                    'capped': sum(e['steps'] >= max_steps for e in run.episodes)}
             for metric in PAIRED_METRICS:
                 own = np.array([e[metric] for e in run.episodes], dtype=float)
-                diff = np.array([e[metric] - theirs[e['seed']][metric] for e in run.episodes], dtype=float)
                 mean, low, high = paired_interval(own)
                 row.update({metric: mean, f'{metric}_low': low, f'{metric}_high': high})
-                mean, low, high = paired_interval(diff)
+                mean, low, high = paired_difference(run.episodes, teacher.episodes, metric)
                 row.update({f'd_{metric}': mean, f'd_{metric}_low': low, f'd_{metric}_high': high})
             rows.append(row)
     return rows
@@ -208,9 +205,7 @@ def speed_orderings(evaluation_dir: Path, run: str, pairs: Sequence[tuple[str, s
         a, b = evaluation_dir / f'{run}_{fast}.csv', evaluation_dir / f'{run}_{slow}.csv'
         if not (a.exists() and b.exists()):
             continue
-        first, second = {r['seed']: r for r in read_rows(a)}, {r['seed']: r for r in read_rows(b)}
-        diff = [float(first[s]['v_AVs']) - float(second[s]['v_AVs']) for s in first if s in second]
-        mean, low, high = paired_interval(diff)
+        mean, low, high = paired_difference(read_rows(a), read_rows(b), 'v_AVs')
         verdict = 'holds' if low > 0 else 'reversed' if high < 0 else 'not resolved'
         lines.append(f'- {run}: {fast} faster than {slow}: v_AVs {mean:+.3f} m/s [{low:+.3f}, {high:+.3f}]: {verdict}')
     return lines

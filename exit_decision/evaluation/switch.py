@@ -16,8 +16,9 @@ import numpy as np
 
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.episode_log import HEADWAY_MIN_SPEED, HEADWAY_RANGE
-from exit_decision.evaluation.evaluate import command_steps
-from exit_decision.model.driving import PolicyDriver
+from exit_decision.driving.episode import play_episode
+from exit_decision.driving.interface import Driver, StepDecision
+from exit_decision.model.modes import Mode
 from exit_decision.traffic import TrafficSnapshot, VehicleState
 
 #: the episode's (time [s], vehicles) of every simulation step, in order
@@ -67,27 +68,25 @@ def switch_windows(steps: Iterable[tuple[float, list[VehicleState]]], switch_tim
     return figures(sums['before']), figures(sums['after'])
 
 
-def policy_steps(env: ExitDecisionEnv, driver: PolicyDriver, seed: int, weights: np.ndarray, until: float,
-                 switch: tuple[float, np.ndarray] | None = None) -> Steps:
+def policy_steps(env: ExitDecisionEnv, driver: Driver, seed: int, until: float,
+                 switch: tuple[float, Mode] | None = None) -> Steps:
     """The (time, vehicles) of every step of one episode in the environment (no ROS) up to
-    ``until`` [s], the policy deciding for ``weights``, or from ``switch`` = (time, weights) on
-    for those (every option held ends there, as in the decision node)."""
-    driver.reset()
+    ``until`` [s], the driver in the mode it was given, or from ``switch`` = (time, mode) on in
+    that one (every option held ends there, as in the decision node)."""
     steps: Steps = []
 
-    def commands_of(env: ExitDecisionEnv) -> dict:
-        nonlocal weights, switch
-        if not steps:
-            steps.append((env.sim.state.time, list(env.sim.snapshot.vehicles)))
-        if switch is not None and env.sim.state.time >= switch[0] - 1e-9:
-            weights, switch = switch[1], None
-            driver.reset()
-        return driver.decide(env.graph, env.sim.snapshot, weights, env.sim.state.time).commands
+    def on_start() -> None:
+        steps.append((env.sim.state.time, list(env.sim.snapshot.vehicles)))
 
-    for info in command_steps(env, commands_of, seed):
-        steps += [(result.time, result.vehicles) for result in info['step_results']]
-        if steps[-1][0] >= until:
-            break
+    def on_step(decision: StepDecision, info: dict, terminated: bool, truncated: bool) -> bool:
+        nonlocal switch
+        steps.extend((result.time, result.vehicles) for result in info['step_results'])
+        if switch is not None and env.sim.state.time >= switch[0] - 1e-9:
+            driver.set_mode(switch[1])
+            switch = None
+        return steps[-1][0] >= until
+
+    play_episode(env, driver, seed, on_step, on_start)
     return steps
 
 

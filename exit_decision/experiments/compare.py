@@ -31,42 +31,16 @@ from functools import partial
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from tqdm import tqdm
 
 from exit_decision.actions import ActionGrid
-from exit_decision.config import (ConfigError, ProjectConfig, TrainingConfig, deep_merge, load_project, load_yaml,
-                                  parse)
+from exit_decision.config import ConfigError, ProjectConfig, TrainingConfig, deep_merge, load_yaml, parse
 from exit_decision.errors import UsageError
 from exit_decision.evaluation.evaluate import EvaluatedRun, evaluate_policy
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, driver_runs, write_run
 from exit_decision.model.names import GRID_ALGORITHM, default_policy_dir, policy_path
 from exit_decision.tables import read_rows
-
-CellName = Annotated[str, StringConstraints(pattern=r'^[A-Za-z0-9_.-]+$')]   # a directory name
-
-
-class VariantsFile(BaseModel):
-    model_config = ConfigDict(extra='forbid', frozen=True)
-    cells: dict[CellName, dict]
-
-
-def load_variants(path: Path, config_dir: Path | None = None, overrides: Sequence = (),
-                  only: Sequence[str] = ()) -> dict[str, ProjectConfig]:
-    """The project config of each cell of a variants file (or of the cells named in ``only``);
-    errors name the file and the cell."""
-    variants = parse(VariantsFile, load_yaml(path), path).cells
-    unknown = [name for name in only if name not in variants]
-    if unknown:
-        raise ConfigError(f'{path}: no cell {", ".join(map(repr, unknown))}; cells: {", ".join(variants)}')
-    configs = {}
-    for name in only or variants:
-        try:
-            configs[name] = load_project(config_dir, variants[name], overrides)
-        except ConfigError as error:
-            raise ConfigError(f'{path}: cells.{name} (merged over scenario.yaml): {error}') from None
-    return configs
-
 
 @dataclass(frozen=True)
 class Cell:

@@ -24,7 +24,7 @@ from exit_decision.config import PUBLISHED_SUFFIX
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult
 from exit_decision.evaluation.plots import plt, read_csv, rolling, save
 from exit_decision.evaluation.report import SUMO, TEACHER, comparison_markdown, paired_comparison
-from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.evaluation.statistics import paired_difference, paired_interval
 from exit_decision.tables import read_rows
 
 #: the episode metrics (``exit_decision.episode_log``), each with the direction that is better
@@ -119,11 +119,6 @@ def winners_table(runs: dict[str, dict[str, list[dict[str, float]]]], mode: str)
                      f'{mean:+.4g} [{low:+.4g}, {high:+.4g}] | '
                      f'{"wins" if decided else "tied with the runner-up (interval includes 0)"} |')
     return '\n'.join(lines)
-
-
-def paired_difference(a: list[dict[str, float]], b: list[dict[str, float]], metric: str) -> tuple[float, float, float]:
-    theirs = {e['seed']: e[metric] for e in b}
-    return paired_interval([e[metric] - theirs[e['seed']] for e in a if e['seed'] in theirs])
 
 
 def verdict(low: float, high: float) -> str:

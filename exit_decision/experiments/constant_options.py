@@ -17,12 +17,14 @@ import numpy as np
 from tqdm import tqdm
 
 from exit_decision.config import ProjectConfig
+from exit_decision.driving import fixed
+from exit_decision.evaluation.evaluate import best_fixed_driver
 from exit_decision.evaluation.statistics import paired_interval
 from exit_decision.experiments.reward_sanity import variant_rows
 from exit_decision.tables import write_rows
 
 #: the references beside the options' styles (run name -> how its CAVs are driven)
-REFERENCES = ('grid_rule_based', 'sumo')
+REFERENCES = (fixed.GRID_RULE_BASED, fixed.SUMO)
 COLUMNS = ('v_AVs', 'headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV')
 
 
@@ -31,7 +33,13 @@ AT = '@'
 
 
 def option_run_name(style: str) -> str:
-    return f'option_{style}'
+    return fixed.OPTION_PREFIX + style
+
+
+def neutral_run(config: ProjectConfig) -> str:
+    """The run of the neutral driver over options (the planner's style, config/env.yaml): the
+    tables' reference."""
+    return option_run_name(config.env.options.neutral_style)
 
 
 def policy_label(path: Path) -> str:
@@ -48,45 +56,48 @@ def _episode(task: tuple) -> list[dict]:
     """One run on one seed, in a worker process: a row per reward variant, with the return
     under every mode."""
     config, run, seed, variants, policies = task
-    from exit_decision.agents.options import OptionExecutor, OptionSpace
-    from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import (EvaluationResult, constant_option, play_policy, run_episode,
-                                                   run_option_episode)
-    from exit_decision.model.modes import ModeWeights
-    from exit_decision.model.policy import ACTION_SPACES, load_controller
+    from exit_decision.driving.episode import play_episode
 
-    env = _worker_env(config, 'sumo' if run == 'sumo' else 'policy')
-    if AT in run:
-        label, mode = run.split(AT)
-        controller = load_controller(config, policies[label], env.shield, env.planner, action_spaces=ACTION_SPACES)
-        weights = ModeWeights(config).weights(mode) if controller.policy.conditioned else None
-        played = play_policy(env, controller, weights, [seed])
-        metrics = {k: v for k, v in played[0].items() if k not in ('seed', 'reward_vector')}
-    elif run == 'sumo':
-        metrics = run_episode(env, None, seed, EvaluationResult())
-    elif run == 'grid_rule_based':
-        metrics = run_episode(env, RuleBasedDriver.for_env(env), seed, EvaluationResult())
-    else:
-        space = OptionSpace(config, env.shield, env.planner)
-        constant = space.index('route', run.removeprefix('option_'))
-        executor = OptionExecutor(space)
-        metrics = run_option_episode(env, executor, constant_option(constant), seed)
+    env = _worker_env(config, 'sumo' if run == fixed.SUMO else 'policy')
+    metrics = play_episode(env, _worker_driver(env, run, policies), seed)
     return variant_rows(config, env, variants, {'run': run, 'seed': seed}, metrics)
 
 
-_ENV = None
+_WORKER: dict = {}   # per process: its one environment, and the drivers made for it
 
 
 def _worker_env(config: ProjectConfig, cav_driver: str):
     """The worker's one environment (libsumo: one simulation per process), made again when
-    the CAVs' driver changes."""
+    the CAVs' driver changes (its drivers with it)."""
     from exit_decision.env import ExitDecisionEnv
-    global _ENV
-    if _ENV is None or _ENV.sim.cav_driver != cav_driver:
-        if _ENV is not None:
-            _ENV.close()
-        _ENV = ExitDecisionEnv(config, cav_driver=cav_driver, keep_step_inputs=True)
-    return _ENV
+    env = _WORKER.get('env')
+    if env is None or env.sim.cav_driver != cav_driver:
+        if env is not None:
+            env.close()
+        _WORKER.clear()
+        _WORKER['env'] = env = ExitDecisionEnv(config, cav_driver=cav_driver, keep_step_inputs=True)
+    return env
+
+
+def _worker_driver(env, run: str, policies: dict[str, Path]):
+    """The driver of ``run`` (a fixed driver by its name, or ``<policy label>@<mode>``), made once
+    per worker and environment (a policy's checkpoint is loaded once, its mode set per run)."""
+    from exit_decision.driving.policy import own_mode, policy_driver
+    from exit_decision.model.modes import ModeWeights
+    from exit_decision.model.policy import ACTION_SPACES, load_controller
+
+    label, _, mode = run.partition(AT)
+    if label not in _WORKER:
+        if mode:
+            controller = load_controller(env.config, policies[label], env.shield, env.planner,
+                                         action_spaces=ACTION_SPACES)
+            _WORKER[label] = policy_driver(controller, env.config)
+        else:
+            _WORKER[label] = fixed.by_name(env, label)
+    driver = _WORKER[label]
+    if mode:
+        driver.set_mode(own_mode(driver.source, ModeWeights(env.config), mode))
+    return driver
 
 
 def run_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int,
@@ -128,17 +139,22 @@ def _paired(by: dict, run: str, other: str, seeds: list[int], mode: str) -> str:
     return f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]' + {1: ' ↑', -1: ' ↓', 0: ''}[_side(low, high)]
 
 
+def _mean(by: dict, run: str, seeds: list[int], metric: str) -> float:
+    """A run's mean of one metric over the seeds (episodes without it, NaN, left out)."""
+    return float(np.nanmean([float(by[(run, s)][metric]) for s in seeds]))
+
+
 def _means(by: dict, run: str, seeds: list[int]) -> list[str]:
-    return [f'{np.nanmean([float(by[(run, s)][c]) for s in seeds]):.3g}' for c in COLUMNS]
+    return [f'{_mean(by, run, seeds, c):.3g}' for c in COLUMNS]
 
 
 def best_fixed_drivers(by: dict, seeds: list[int], modes: list[str]) -> dict[str, str]:
     """Per mode, the constant option with the highest mean return: the best fixed driver."""
-    options = [run for run in dict.fromkeys(run for run, _ in by) if run.startswith('option_')]
-    return {mode: max(options, key=lambda run: _returns(by, run, seeds, mode).mean()) for mode in modes}
+    options = [run for run in dict.fromkeys(run for run, _ in by) if run.startswith(fixed.OPTION_PREFIX)]
+    return {mode: best_fixed_driver({run: _returns(by, run, seeds, mode) for run in options}) for mode in modes}
 
 
-def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str = option_run_name('neutral'),
+def table_markdown(rows: list[dict], modes: list[str], variant: str, neutral: str,
                    orderings: list[tuple[str, str]] = ()) -> str:
     """Per run: the driving columns, then per mode its return under ``variant`` and the paired
     difference to the neutral option; then, per mode, the best constant option (the best fixed
@@ -192,8 +208,7 @@ README_COLUMNS = (('Exit-1', 'p_CAV', '.3f'), ('CAV collisions', 'p_collision_CA
                   ('time headway [s]', 'headway_CAV', '.2f'), ('hard brakings', 'N_braking', '.2f'))
 
 
-def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str,
-                 neutral: str = option_run_name('neutral')) -> str:
+def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str, neutral: str) -> str:
     """The README's results table: per mode, the policy labelled ``policy`` (when the rows hold
     it), the best fixed driver, the neutral driver and SUMO's drivers, with their means and the
     return's paired difference to the neutral driver."""
@@ -208,7 +223,7 @@ def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str,
                 continue   # no policy in the rows; the neutral driver is the best fixed one (one row)
             label = README_DRIVERS[role] + (f' (`{run.removeprefix("option_")}`'
                                             + (', the neutral driver)' if run == neutral else ')') if role == 'best' else '')
-            cells = [format(np.nanmean([float(by[(run, s)][metric]) for s in seeds]), spec) for _, metric, spec in README_COLUMNS]
+            cells = [format(_mean(by, run, seeds, metric), spec) for _, metric, spec in README_COLUMNS]
             difference = '—' if run == neutral else _paired(by, run, neutral, seeds, mode)
             lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + f' | {difference} |')
     return '\n'.join(lines + ['', f'{len(seeds)} test seeds, reward variant `{variant}`; ↑ / ↓: the interval excludes 0. '
@@ -245,7 +260,7 @@ def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jo
             f'rule-based driver on the 81-action grid; `sumo`: SUMO\'s own drivers. Columns: means over the '
             f'episodes; per mode the mean return and, in brackets, the paired difference to `option_neutral` '
             f'with its 95% interval (↑ / ↓: the interval excludes 0).\n\n'
-            + '\n\n'.join(table_markdown(rows, config.mode_matrix.modes, variant,
+            + '\n\n'.join(table_markdown(rows, config.mode_matrix.modes, variant, neutral_run(config),
                                            orderings=config.mode_matrix.aggressive_orderings) for variant in variants) + '\n')
     (out_dir / 'constant_options.md').write_text(text, encoding='utf-8')
     return text

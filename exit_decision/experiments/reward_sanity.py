@@ -62,15 +62,13 @@ def load_sweep(path: Path, config: ProjectConfig) -> tuple[dict[str, RuleBasedCo
 def _episode(task: tuple) -> list[dict]:
     """One driver on one seed (in a worker process: libsumo is one simulation per process)."""
     config, name, parameters, seed, variants, low_level = task
-    from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import EvaluationResult, run_commands_episode, run_episode
+    from exit_decision.driving import fixed
+    from exit_decision.driving.episode import play_episode
 
     env = _worker_env(config, variants[0])
-    if low_level == 'options':
-        driver = RuleBasedDriver.for_env(env, parameters.model_copy(update=config.env.options.low_level))
-        metrics = run_commands_episode(env, lambda env: driver.commands(env.graph, env.sim.snapshot), seed)
-    else:
-        metrics = run_episode(env, RuleBasedDriver.for_env(env, parameters), seed, EvaluationResult())
+    driver = fixed.rule_based_low_level(env, parameters.model_copy(update=config.env.options.low_level)) \
+        if low_level == 'options' else fixed.rule_based(env, parameters)
+    metrics = play_episode(env, driver, seed)
     return variant_rows(config, env, variants, {'driver': name, 'seed': seed}, metrics)
 
 

@@ -41,7 +41,9 @@ def weight_points(config: ProjectConfig) -> dict[str, np.ndarray]:
 
 def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out_dir: Path) -> Path:
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import play_policy
+    from exit_decision.driving.policy import policy_driver
+    from exit_decision.evaluation.evaluate import play_episodes
+    from exit_decision.model.modes import ModeWeights
     from exit_decision.model.policy import ACTION_SPACES, load_controller
 
     env = ExitDecisionEnv(config)
@@ -50,8 +52,10 @@ def run_tradeoff(config: ProjectConfig, policy_path: Path, seeds: list[int], out
         controller = load_controller(config, policy_path, env.shield, env.planner, action_spaces=ACTION_SPACES)
         if not controller.policy.conditioned:
             raise PolicyError(f'{policy_path}: the trade-off needs a mode-conditioned policy')
+        driver, modes = policy_driver(controller, config), ModeWeights(config)
         for name, weights in weight_points(config).items():
-            episodes = play_policy(env, controller, weights, seeds, desc=name)
+            driver.set_mode(modes.of_weights(weights))
+            episodes = play_episodes(env, driver, seeds, desc=name)
             multipliers = weights_of_input(weights)
             rows.append({'point': name, **{f'w{i}': float(w) for i, w in enumerate(weights)},
                          **{k: float(np.nanmean([e[k] for e in episodes]))

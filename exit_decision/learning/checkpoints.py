@@ -9,6 +9,7 @@ resumable state: networks, optimizer, progress, random generator) and ``timing.j
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,28 @@ from exit_decision.config import ActionSpaceName, ProjectConfig
 from exit_decision.errors import PolicyError
 from exit_decision.learning.agent import GraphQAgent
 from exit_decision.model.names import CONDITIONED
-from exit_decision.model.policy import git_revision, load_policy, save_policy
+from exit_decision.model.networks import GraphQNetwork
+from exit_decision.model.policy import CHECKPOINT_FORMAT, load_policy
+
+
+def git_revision() -> str:
+    """The checkout's revision (commands run from the repository root), 'unknown' elsewhere."""
+    try:
+        result = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
+                                check=False, timeout=5)
+    except (OSError, subprocess.TimeoutExpired):
+        return 'unknown'
+    return result.stdout.strip() or 'unknown'
+
+
+def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) -> None:
+    """Write a checkpoint (``model.policy.load_policy`` reads it); ``metadata`` must be plain
+    data (str, numbers, lists, dicts)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(path.suffix + '.tmp')
+    torch.save({'format': CHECKPOINT_FORMAT, 'network': network.shape.to_dict(),
+                'state_dict': network.state_dict(), 'metadata': metadata}, temporary)
+    temporary.replace(path)
 
 
 @dataclass

@@ -1,12 +1,13 @@
 """Playing training episodes and turning them into m-step transitions (docs/design.md, "Learning").
 
-Per decision: the Q values of the graph (one forward for all rows), then each CAV chooses
-under the shield, front to back: epsilon-greedy, the random action biased towards keeping
-the lane and a small acceleration; the env holds the actions for the decision interval; the
-m-step accumulator emits transitions whose returns are reward *vectors*
-(``exit_decision.reward``), scored under mode weights only when sampled. Over options, the
-rows whose option ended choose and the low level makes the commands. Without a network the
-demonstrator drives (the demonstrations DQfD learns from).
+A training episode is the one episode loop (``driving.episode``) with the driver of the network
+being learnt (``driving.policy.PolicyDriver``, epsilon-greedy through ``explore``), or, without a
+network, the demonstrator (the neutral rule-based driver on the grid; over options, the neutral
+style on the route's lane plan, the same for every mode). The collector records each decision:
+the state it was made in (encoded once, the network's Q values read the same encoding), the
+actions and their masks, and the reward vectors of the interval (``exit_decision.reward``),
+scored under mode weights only when sampled; the m-step accumulator emits the transitions.
+Over options, only the rows whose option ended chose, and the others act with the option they hold.
 """
 from __future__ import annotations
 
@@ -15,97 +16,99 @@ from collections.abc import Callable
 import numpy as np
 
 from exit_decision.actions import NO_ACTION
-from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ExplorationConfig
+from exit_decision.driving.fixed import GridDriver, constant_option
+from exit_decision.driving.interface import Driver, StepDecision
+from exit_decision.driving.episode import play_episode
+from exit_decision.driving.policy import PolicyDriver
 from exit_decision.encoders import StateEncoder
 from exit_decision.env import ExitDecisionEnv
+from exit_decision.graph import TrafficGraph
 from exit_decision.learning.replay import DecisionRecord, EpisodeAccumulator, Transition
+from exit_decision.model.modes import Mode
 from exit_decision.model.networks import GraphQNetwork
-from exit_decision.model.policy import greedy_decision, q_values
+from exit_decision.model.policy import q_values
+from exit_decision.traffic import TrafficSnapshot
 
 #: called after every decision with the transitions it emitted (learning as the episode goes)
 OnDecision = Callable[[list[Transition]], None]
 
 
+class EncodedStates:
+    """The encoder's view of the last graph, made once per decision (the replay keeps it and the
+    network's Q values are computed from it)."""
+
+    def __init__(self, encoder: StateEncoder):
+        self.encoder = encoder
+        self._last: tuple[TrafficGraph, TrafficGraph] | None = None
+
+    def __call__(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> TrafficGraph:
+        if self._last is None or self._last[0] is not graph:
+            self._last = (graph, self.encoder.encode(graph, snapshot))
+        return self._last[1]
+
+
+class LearningQ:
+    """The network being learnt as a policy driver's Q source (``driving.policy.QSource``)."""
+    name = 'learning'
+
+    def __init__(self, network: GraphQNetwork, encoded: EncodedStates, shield, planner):
+        self.network, self.encoded, self.shield, self.planner = network, encoded, shield, planner
+
+    def network_weights(self, mode: Mode) -> np.ndarray | None:
+        return mode.weights if self.network.conditioned else None
+
+    def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot, network_weights: np.ndarray | None) -> np.ndarray:
+        return q_values(self.network, self.encoded(graph, snapshot), network_weights)
+
+
 class Collector:
     """Plays episodes in ``env``, on the grid or over its options. ``shield`` and ``planner``:
-    what the learned policy chooses under (a method as published: the bare shield, no
-    planner); ``rng``: the run's generator (exploration)."""
+    what the learned policy chooses under on the grid (a method as published: the bare shield,
+    no planner); ``rng``: the run's generator (exploration)."""
 
-    def __init__(self, env: ExitDecisionEnv, encoder: StateEncoder, demonstrator: RuleBasedDriver, shield,
-                 planner, exploration: ExplorationConfig, multi_step: int, gamma: float, rng: np.random.Generator):
-        self.env, self.encoder, self.demonstrator = env, encoder, demonstrator
+    def __init__(self, env: ExitDecisionEnv, encoder: StateEncoder, shield, planner, exploration: ExplorationConfig,
+                 multi_step: int, gamma: float, rng: np.random.Generator):
+        self.env, self.encoded = env, EncodedStates(encoder)
         self.shield, self.planner, self.exploration = shield, planner, exploration
         self.multi_step, self.gamma, self.rng = multi_step, gamma, rng
         self.grid, self.options = env.actions, env.options   # options: None on the grid
+        self.demonstrator: Driver = GridDriver('demonstrator', self.grid, env.rule_based_driver().decide) \
+            if self.options is None else constant_option(self.options, env.config.env.options.neutral_style)
 
-    def episode(self, seed: int, network: GraphQNetwork | None = None, weights: np.ndarray | None = None,
+    def driver(self, network: GraphQNetwork | None, mode: Mode | None, epsilon: float) -> Driver:
+        """The demonstrator (``network`` None), or the network epsilon-greedy for ``mode``."""
+        if network is None:
+            return self.demonstrator
+        explore = self.explore if self.options is None else self.explore_option
+        return PolicyDriver(LearningQ(network, self.encoded, self.shield, self.planner), self.options, mode,
+                            explore=lambda mask: explore(mask) if self.rng.random() < epsilon else None)
+
+    def episode(self, seed: int, network: GraphQNetwork | None = None, mode: Mode | None = None,
                 epsilon: float = 0.0, on_decision: OnDecision | None = None) -> list[Transition]:
         """One episode, by the demonstrator (``network`` None) or epsilon-greedy on ``network``'s
-        Q values (``weights``: a conditioned network's mode weights); returns its transitions."""
-        play = self._grid_episode if self.options is None else self._option_episode
-        return play(seed, network, weights, epsilon, on_decision)
-
-    def _grid_episode(self, seed, network, weights, epsilon, on_decision) -> list[Transition]:
-        env = self.env
-        env.reset(seed=seed)
+        Q values for ``mode``; returns its transitions."""
+        driver, env = self.driver(network, mode, epsilon), self.env
         accumulator = EpisodeAccumulator(self.multi_step, self.gamma)
-        transitions = []
-        keep = self.grid.index(0, 0.0)
-        while True:
-            graph, snapshot = env.graph, env.sim.snapshot
-            observed = self.encoder.encode(graph, snapshot)
-            if network is None:
-                decision = self.demonstrator.decide(graph, snapshot)
-            else:
-                q = q_values(network, observed, weights)
-                decision = greedy_decision(self.shield, graph, snapshot, q, explore=lambda mask: (
-                    self.explore(mask) if self.rng.random() < epsilon else None), planner=self.planner)
-            actions, masks = self.decision_arrays(graph, decision)
-            _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, keep))
+        transitions: list[Transition] = []
+        state: dict = {}
+
+        def on_start() -> None:
+            state.update(record=self.decision_state(), rows=env.graph.row_of())
+
+        def on_step(decision: StepDecision, info: dict, terminated: bool, truncated: bool) -> None:
             own, shared = info['reward_vector']
-            emitted = accumulator.add(DecisionRecord(observed, actions, masks, own, shared))
+            emitted = accumulator.add(self.record(state['record'], state['rows'], decision, own, shared))
             if terminated or truncated:
-                emitted += accumulator.finish(self.final_record(), terminated)
-            transitions += emitted
+                emitted += accumulator.finish(self.decision_state(final=True), terminated)
+            else:
+                state.update(record=self.decision_state(), rows=env.graph.row_of())
+            transitions.extend(emitted)
             if on_decision is not None:
                 on_decision(emitted)
-            if terminated or truncated:
-                return transitions
 
-    def _option_episode(self, seed, network, weights, epsilon, on_decision) -> list[Transition]:
-        """Over options: the rows whose option ended choose (the demonstrator: the neutral style
-        on the route's lane plan, the same for every mode; the policy: epsilon-greedy over the
-        allowed options), every CAV row acts with the option it holds."""
-        env, space = self.env, self.options
-        _, info = env.reset(seed=seed)
-        accumulator = EpisodeAccumulator(self.multi_step, self.gamma)
-        transitions = []
-        neutral = space.index('route', 'neutral')
-        while True:
-            graph = env.graph
-            observed = self.encoder.encode(graph, env.sim.snapshot)
-            choosing, masks, held = info['choosing'], info['option_masks'], info['options']
-            if network is None:
-                chosen = np.full(graph.num_nodes, neutral)
-            else:
-                q = np.where(masks, q_values(network, observed, weights), -np.inf)
-                chosen = q.argmax(1)
-                for row in np.flatnonzero(choosing):
-                    if self.rng.random() < epsilon:
-                        chosen[row] = self.rng.choice(np.flatnonzero(masks[row]))
-            actions = np.where(choosing, chosen, held).astype(np.int64)
-            actions[~graph.cav_mask.astype(bool)] = NO_ACTION
-            _, _, terminated, truncated, info = env.step(np.where(actions >= 0, actions, neutral))
-            own, shared = info['reward_vector']
-            emitted = accumulator.add(DecisionRecord(observed, actions, masks, own, shared, choosing))
-            if terminated or truncated:
-                emitted += accumulator.finish(self.final_record(info), terminated)
-            transitions += emitted
-            if on_decision is not None:
-                on_decision(emitted)
-            if terminated or truncated:
-                return transitions
+        play_episode(env, driver, seed, on_step, on_start)
+        return transitions
 
     def explore(self, mask: np.ndarray) -> int:
         """A random allowed action; biased: usually keep the lane, acceleration ~ N(0, std),
@@ -123,31 +126,43 @@ class Collector:
         wanted = self.rng.normal(0.0, e.acceleration_std)
         return int(candidates[np.argmin(np.abs(grid.acceleration_of[candidates] - wanted))])
 
-    def decision_arrays(self, graph, decision) -> tuple[np.ndarray, np.ndarray]:
-        """A decision's actions and action masks as (N,) and (N, A) arrays by graph row."""
-        n = graph.num_nodes
-        actions = np.full(n, NO_ACTION, np.int64)
-        masks = np.zeros((n, self.grid.size), bool)
-        row_of = graph.row_of()
+    def explore_option(self, mask: np.ndarray) -> int:
+        """A random allowed option."""
+        return int(self.rng.choice(np.flatnonzero(mask)))
+
+    def decision_state(self, final: bool = False) -> DecisionRecord:
+        """The state of the next decision, as the replay keeps it: the encoded graph and, over
+        options, each CAV row's option mask (on the grid the decision gives its masks). The
+        ``final`` state of an episode (for bootstrapping) has the masks its CAVs would choose
+        under, and over options every row chooses anew there."""
+        graph, snapshot, n = self.env.graph, self.env.sim.snapshot, self.env.graph.num_nodes
+        observed = self.encoded(graph, snapshot)
+        size = self.grid.size if self.options is None else self.options.size
+        masks = np.zeros((n, size), bool)
+        if self.options is not None:
+            for row in graph.cav_rows():
+                masks[row] = self.options.mask(snapshot.by_id[graph.vehicle_ids[row]])
+        elif final:
+            for row in graph.cav_rows():
+                vehicle = snapshot.by_id[graph.vehicle_ids[row]]
+                mask = self.shield.mask(vehicle, snapshot)
+                masks[row] = self.planner.restrict(vehicle, mask) if self.planner is not None else mask
+        choosing = np.ones(n, bool) if self.options is not None and final else None
+        return DecisionRecord(observed, np.full(n, NO_ACTION, np.int64), masks, choosing=choosing)
+
+    def record(self, state: DecisionRecord, row_of: dict[str, int], decision: StepDecision, own: np.ndarray,
+               shared: np.ndarray) -> DecisionRecord:
+        """The decision taken in ``state`` (``row_of``: its graph's rows): each CAV row's action
+        (on the grid with the mask it chose under; over options the option it holds, and whether
+        it began it here)."""
+        masks = state.masks.copy()
+        actions = np.full(len(state.actions), NO_ACTION, np.int64)
         for vehicle_id, action in decision.actions.items():
             actions[row_of[vehicle_id]] = action
-            masks[row_of[vehicle_id]] = decision.masks[vehicle_id]
-        return actions, masks
-
-    def final_record(self, info: dict | None = None) -> DecisionRecord:
-        """The last state, with the masks its CAVs would choose under (for bootstrapping; over
-        options, the step's ``info`` has them, and every row chooses anew there)."""
-        graph, planner = self.env.graph, self.planner
+            if self.options is None:
+                masks[row_of[vehicle_id]] = decision.masks[vehicle_id]
+        choosing = None
         if self.options is not None:
-            return DecisionRecord(self.encoder.encode(graph, self.env.sim.snapshot),
-                                  np.full(graph.num_nodes, NO_ACTION, np.int64), info['option_masks'],
-                                  choosing=np.ones(graph.num_nodes, bool))
-        snapshot = self.env.sim.snapshot
-        masks = np.zeros((graph.num_nodes, self.grid.size), bool)
-        for vehicle_id, row in graph.row_of().items():
-            if graph.cav_mask[row]:
-                vehicle = snapshot.by_id[vehicle_id]
-                mask = self.shield.mask(vehicle, snapshot)
-                masks[row] = planner.restrict(vehicle, mask) if planner is not None else mask
-        return DecisionRecord(self.encoder.encode(graph, snapshot), np.full(graph.num_nodes, NO_ACTION, np.int64),
-                              masks)
+            choosing = np.zeros(len(actions), bool)
+            choosing[[row_of[vehicle_id] for vehicle_id in decision.began]] = True
+        return DecisionRecord(state.graph, actions, masks, own, shared, choosing)

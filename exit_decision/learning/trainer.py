@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from exit_decision.agents.rule_based import RuleBasedDriver
 from exit_decision.config import ActionSpaceName, ProjectConfig
 from exit_decision.encoders import StateEncoder
 from exit_decision.env import ExitDecisionEnv
@@ -41,6 +40,7 @@ from exit_decision.learning.checkpoints import Checkpoints, TrainingState, run_d
 from exit_decision.learning.collecting import Collector
 from exit_decision.learning.sampling import Experience, WeightSampler
 from exit_decision.learning.validation import ValidationTask, Validator, record_validation, validation_seeds
+from exit_decision.model.modes import Mode, ModeWeights
 from exit_decision.model.names import CONDITIONED
 from exit_decision.model.networks import NetworkShape
 from exit_decision.reward import WEIGHT_INPUT_SIZE
@@ -62,6 +62,7 @@ class Trainer:
         # slower, measured) as soon as anything else runs on the other core.
         torch.set_num_threads(1)
         self.config, self.algorithm, self.mode, self.seed = config, algorithm, mode, seed
+        self.modes = ModeWeights(config)
         method = config.training.method(algorithm)
         self.training = t = config.training.of_method(algorithm)
         self.out_dir = out_dir
@@ -94,8 +95,7 @@ class Trainer:
         self.experience = Experience(t, method.prioritized, n, self.shape.num_features, num_actions, self.sampler,
                                      env.learning_weights, self.rng)
         # as published: the bare shield and no planner (the env's serve the teacher)
-        self.collector = Collector(env, encoder, RuleBasedDriver.for_env(env),
-                                   env.shield if method.measures else env.shield.bare(),
+        self.collector = Collector(env, encoder, env.shield if method.measures else env.shield.bare(),
                                    env.planner if method.measures else None,
                                    t.exploration, method.multi_step, t.gamma, self.rng)
         self.checkpoints = Checkpoints(out_dir, run_description(
@@ -125,9 +125,9 @@ class Trainer:
         """The RL phase is over: ``episodes`` episodes, or the configured environment steps."""
         return self.progress(episodes, self.training.environment_steps) >= 1.0
 
-    def episode_weights(self) -> np.ndarray | None:
-        """The weights the policy acts for in a training episode (conditioned: drawn)."""
-        return self.sampler.sample(1)[0] if self.conditioned else None
+    def episode_mode(self) -> Mode:
+        """The mode the policy acts for in a training episode (conditioned: weights drawn)."""
+        return self.modes.of_weights(self.sampler.sample(1)[0]) if self.conditioned else self.modes.mode(self.mode)
 
     # --- learning ---------------------------------------------------------------------------
 
@@ -227,7 +227,7 @@ class Trainer:
             self.state.decisions += 1
             losses.extend(self.train_steps(self.training.updates_per_decision))
         self.collector.episode(self.seed * EPISODE_SEED_STRIDE + self.state.episode, self.agent.online,
-                               self.episode_weights(), epsilon, on_decision=learn)
+                               self.episode_mode(), epsilon, on_decision=learn)
         metrics = self.env.episode_log.metrics()
         row = {'episode': self.state.episode, 'epsilon': epsilon, 'margin_weight': self.margin_weight(),
                'loss': float(np.mean([x['loss'] for x in losses])) if losses else float('nan'),

@@ -21,15 +21,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from exit_decision.config.seeds import VALIDATION_SEED
 from exit_decision.config import ProjectConfig, ValidationConfig
-from exit_decision.evaluation.statistics import paired_interval
+from exit_decision.evaluation.statistics import paired_difference
 from exit_decision.tables import append_row
 
 if TYPE_CHECKING:
     from exit_decision.env import ExitDecisionEnv
 
 INFEASIBLE = -1000.0   # score offset of a candidate outside the safety targets in some mode
-VALIDATION_SEED = 900_000   # the first validation seed (training and test seeds lie elsewhere)
 
 
 def validation_seeds(episodes: int) -> list[int]:
@@ -52,25 +52,21 @@ def _teacher_episodes(task: ValidationTask, env) -> dict[str, list[dict]]:
     """Per validation mode, the episodes of the driver a candidate is judged against: the
     neutral rule-based driver on the grid; over options, the best fixed driver of that mode
     (the constant option, one style on the route's lane plan, of highest mean return)."""
-    from exit_decision.agents.options import OptionExecutor, OptionSpace
-    from exit_decision.agents.rule_based import RuleBasedDriver
-    from exit_decision.evaluation.evaluate import constant_option, run_episodes, run_option_episode, scored_episodes
+    from exit_decision.agents.options import OptionSpace
+    from exit_decision.driving import fixed
+    from exit_decision.evaluation.evaluate import best_fixed_driver, play_episodes, scored_episodes
 
     if task.action_space == 'grid':
-        episodes = run_episodes(env, RuleBasedDriver.for_env(env), task.seeds)
-        return dict.fromkeys(task.modes, episodes)
+        return dict.fromkeys(task.modes, play_episodes(env, fixed.rule_based(env), task.seeds))
     space = OptionSpace(task.config, env.shield, env.planner)
-    executor = OptionExecutor(space)
-    by_style = {}
-    for style in task.config.env.options.styles:
-        constant = space.index('route', style)
-        by_style[style] = [{'seed': seed, **run_option_episode(env, executor, constant_option(constant), seed),
-                            'reward_vector': env.episode_log.reward_vector.copy()} for seed in task.seeds]
+    by_style = {style: play_episodes(env, fixed.constant_option(space, style), task.seeds)
+                for style in task.config.env.options.styles}
 
-    def mean_return(episodes, mode):
-        return np.mean([e['reward'] for e in scored_episodes(episodes, env.reward_fn.weights(task.config.mode(mode)))])
-
-    return {mode: max(by_style.values(), key=lambda episodes: mean_return(episodes, mode)) for mode in task.modes}
+    def best(mode: str) -> list[dict]:
+        weights = env.reward_fn.weights(task.config.mode(mode))
+        return by_style[best_fixed_driver({style: [e['reward'] for e in scored_episodes(episodes, weights)]
+                                           for style, episodes in by_style.items()})]
+    return {mode: best(mode) for mode in task.modes}
 
 
 def _env_and_teacher(task: ValidationTask, env=None):
@@ -99,7 +95,7 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
     for run, mode in zip(evaluate_policy(env, path, task.modes, task.seeds), task.modes):
         theirs = scored_episodes(teacher[mode], env.reward_fn.weights(task.config.mode(mode)))
         own = np.array([e['reward'] for e in run.episodes])
-        gain, low, high = paired_interval(own - np.array([e['reward'] for e in theirs]))
+        gain, low, high = paired_difference(run.episodes, theirs, 'reward')
         out[mode] = {
             **{k: float(np.nanmean([e[k] for e in run.episodes])) for k in ('p_CAV', 'p_collision_CAV', 'v_AVs', 'N_braking')},
             'capped': float(sum(e['steps'] >= max_steps for e in run.episodes)),

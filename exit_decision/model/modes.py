@@ -1,13 +1,16 @@
-"""The modes as a policy takes them, free of torch: a mode name and its weight input (the six
-numbers of ``reward.weight_input``: the decision weights of result, efficiency, comfort and
-safety, then incentive and punishment), both ways, and the check of six numbers as a mode.
+"""The modes as a policy takes them, free of torch: one value, ``Mode`` (a name and its weight
+input, the six numbers of ``reward.weight_input``: the decision weights of result, efficiency,
+comfort and safety, then incentive and punishment), and the check of six numbers as a mode.
 
-Names are converted to weights, and weights named, at the edge only (a parameter set, a
-recorded mode, a mode to score under); policies decide for weights (``policy.PolicyController``).
+A ``Mode`` is made at the edge only (a parameter set, a recorded mode, a mode to score under,
+a training episode's drawn weights), by ``ModeWeights.mode`` (a name: the one conversion of a
+name to weights) or ``ModeWeights.of_weights`` (weights: named by the configured mode they
+are, else ``custom``), and travels whole from there to the network (``driving``).
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,9 +28,19 @@ def same_weights(a: np.ndarray, b: Sequence[float] | np.ndarray) -> bool:
     return a.shape == b.shape and bool((np.abs(a - b) <= 1e-9 + 1e-5 * np.abs(b)).all())
 
 
+@dataclass(frozen=True, eq=False)
+class Mode:
+    """A mode as one value: its name (a configured mode's, or ``CUSTOM_MODE``) and its weight
+    input, checked when it was made (``ModeWeights``)."""
+    name: str
+    weights: np.ndarray
+
+    def __repr__(self) -> str:
+        return f'Mode({self.name!r}, {self.weights.tolist()})'
+
+
 class ModeWeights:
-    """The configured modes and their weight inputs, both ways: ``weights(name)`` and
-    ``name(weights)`` (``CUSTOM_MODE`` off every mode)."""
+    """The configured modes: ``mode(name)`` and ``of_weights(weights)`` make a ``Mode``."""
 
     def __init__(self, config: ProjectConfig):
         self.config = config
@@ -36,13 +49,20 @@ class ModeWeights:
     def __contains__(self, name: object) -> bool:
         return name in self._weights
 
-    def weights(self, name: str) -> np.ndarray:
-        """The weight input of mode ``name``; ConfigError for a name that is no configured mode."""
-        return weight_input(self.config.mode(name))
+    def mode(self, name: str) -> Mode:
+        """Mode ``name`` with its weights: the one conversion of a name to weights; ConfigError
+        for a name that is no configured mode."""
+        return Mode(name, weight_input(self.config.mode(name)))
 
-    def name(self, weights: Sequence[float] | np.ndarray) -> str:
-        """The configured mode with these weights (the first in config order), or ``CUSTOM_MODE``."""
-        return next((name for name, known in self._weights.items() if same_weights(known, weights)), CUSTOM_MODE)
+    def of_weights(self, weights: Sequence[float] | np.ndarray) -> Mode:
+        """The mode these weights are: named by the configured mode with them (the first in config
+        order), or ``CUSTOM_MODE``; ValueError, with the reason, for six numbers that are no mode."""
+        reason = check_weights(weights)
+        if reason:
+            raise ValueError(reason)
+        values = np.asarray(weights, dtype=float)
+        name = next((name for name, known in self._weights.items() if same_weights(known, values)), CUSTOM_MODE)
+        return Mode(name, values)
 
 
 def check_weights(weights: Sequence[float]) -> str | None:

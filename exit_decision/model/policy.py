@@ -6,17 +6,17 @@ algorithm (the method's name), seed, git revision, training summary), so it load
 ``torch.load(weights_only=True)`` and rebuilds its own network and encoder (a checkpoint
 without one reads the graph as built; one without an action space acts on the grid).
 ``GraphPolicy.q_values`` encodes the graph and the vehicle states for its method and runs all
-rows in one forward pass; ``PolicyController.decide(graph, snapshot, weights)`` chooses, per
-CAV, the best action the shield allows (the lane planner, when configured, driving the CAVs
-that are off their route) for the mode ``weights`` are (``modes``). ``load_controller`` and
+rows in one forward pass; ``greedy_decision`` chooses, per CAV, the best action the shield
+allows (the lane planner, when configured, driving the CAVs that are off their route), and
+``PolicyController`` holds a policy with the shield and planner it drives under (the drivers
+of ``driving.policy`` choose with them). Checkpoints are written by training
+(``learning.checkpoints``). ``load_controller`` and
 ``load_controllers`` load and check the policies of a configuration, by file or by (algorithm,
 mode) (``names``), for every caller alike.
 """
 from __future__ import annotations
 
-import subprocess
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,7 @@ from exit_decision.config import ActionGridConfig, ConfigError, ProjectConfig
 from exit_decision.encoders import StateEncoder
 from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
-from exit_decision.model.modes import ModeWeights, same_weights
+from exit_decision.model.modes import Mode
 from exit_decision.model.names import Planned, action_space_of, algorithm_name, is_conditioned, policy_path, run_name
 from exit_decision.model.networks import GraphQNetwork, NetworkShape
 from exit_decision.traffic import TrafficSnapshot, VehicleState
@@ -38,25 +38,6 @@ from exit_decision.traffic import TrafficSnapshot, VehicleState
 CHECKPOINT_FORMAT = 'exit_decision.policy/1'
 #: the action spaces a checkpoint's metadata may name (``action_space``; a checkpoint without it: 'grid')
 ACTION_SPACES = ('grid', 'options')
-
-
-def git_revision() -> str:
-    """The checkout's revision (commands run from the repository root), 'unknown' elsewhere."""
-    try:
-        result = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
-                                check=False, timeout=5)
-    except (OSError, subprocess.TimeoutExpired):
-        return 'unknown'
-    return result.stdout.strip() or 'unknown'
-
-
-def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) -> None:
-    """Write a checkpoint; ``metadata`` must be plain data (str, numbers, lists, dicts)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(path.suffix + '.tmp')
-    torch.save({'format': CHECKPOINT_FORMAT, 'network': network.shape.to_dict(),
-                'state_dict': network.state_dict(), 'metadata': metadata}, temporary)
-    temporary.replace(path)
 
 
 def q_values(network: GraphQNetwork, graph: TrafficGraph, weights: np.ndarray | None = None) -> np.ndarray:
@@ -168,77 +149,31 @@ def greedy_decision(shield: Shield, graph: TrafficGraph, snapshot: TrafficSnapsh
 
 
 class PolicyController:
-    """Greedy decisions of a policy under the shield (what evaluation, replay and the node run).
-    A policy trained as published drives as it was trained: the bare shield, no planner.
-    ``modes``: the configured modes, which tell the weights of a per-mode policy's own mode."""
+    """A loaded policy with what it chooses under: the shield, and the lane planner for a policy
+    trained with our measures (one trained as published drives as it was trained: the bare
+    shield, no planner). ``driving.policy.PolicyDriver`` drives with it."""
 
-    def __init__(self, policy: GraphPolicy, shield: Shield, planner: LanePlanner | None = None,
-                 modes: ModeWeights | None = None):
+    def __init__(self, policy: GraphPolicy, shield: Shield, planner: LanePlanner | None = None):
         torch.set_num_threads(1)   # one small forward per decision: threads only add contention
         self.policy = policy
         self.shield = shield if policy.measures else shield.bare()
         self.planner = planner if policy.measures else None
         self.name = policy.label
-        #: a per-mode policy's own mode as weights (None: conditioned, or a mode ``modes`` lacks)
-        self.own_weights = modes.weights(policy.mode) if modes is not None and policy.mode in modes else None
 
-    def network_weights(self, weights: np.ndarray | None) -> np.ndarray | None:
-        """What the network takes to decide for ``weights`` (None: the policy's own mode):
-        a conditioned policy the weights, a per-mode one nothing; PolicyError, in one line, for
-        a conditioned policy given none and a per-mode one given another mode's."""
+    def network_weights(self, mode: Mode) -> np.ndarray | None:
+        """What the network takes to decide in ``mode``: a conditioned policy the mode's weights,
+        a per-mode one nothing; PolicyError, in one line, for a per-mode policy given another mode."""
         if self.policy.conditioned:
-            if weights is None:
-                raise PolicyError(f'{self.policy.path}: a mode-conditioned policy needs the mode weights to decide')
-            return weights
-        if weights is not None and (self.own_weights is None or not same_weights(self.own_weights, weights)):
+            return mode.weights
+        if mode.name != self.policy.mode:
             raise PolicyError(f'{self.policy.path}: a policy of mode {self.policy.mode!r} decides for that mode '
-                              f'only, not for weights {np.asarray(weights, dtype=float).tolist()}; a mode-conditioned '
-                              f'policy decides for any')
+                              f'only, not for mode {mode.name!r} (weights {mode.weights.tolist()}); a '
+                              f'mode-conditioned policy decides for any')
         return None
 
-    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot, weights: np.ndarray | None = None) -> Decision:
-        """The decision for the CAVs of ``graph``, built from the vehicles of ``snapshot``, in the
-        mode of ``weights`` (six numbers, ``modes``; None: the policy's own mode)."""
-        if self.policy.action_space != 'grid':
-            raise PolicyError(f'{self.policy.path}: a policy over {self.policy.action_space} decides through '
-                              f'option_chooser, not on the action grid')
-        q = self.policy.q_values(graph, snapshot, self.network_weights(weights))
-        return greedy_decision(self.shield, graph, snapshot, q, planner=self.planner)
-
-    def option_chooser(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
-                       weights: np.ndarray | None = None) -> Callable[[VehicleState, np.ndarray], int]:
-        """A policy over options at one decision: ``chooser(vehicle, mask)`` gives the allowed
-        option of highest Q value of the vehicle's row (for ``agents.options.OptionExecutor``).
-        The weights are checked now; the forward pass runs at the first call, so a decision at
-        which every CAV holds its option costs none."""
-        network_weights = self.network_weights(weights)
-        first: dict = {}   # the Q values and each vehicle's row, from the first call
-
-        def choose(vehicle: VehicleState, mask: np.ndarray) -> int:
-            if not first:
-                first.update(q=self.policy.q_values(graph, snapshot, network_weights), row_of=graph.row_of())
-            return int(np.where(mask, first['q'][first['row_of'][vehicle.vehicle_id]], -np.inf).argmax())
-        return choose
-
-    def at(self, weights: np.ndarray | None) -> PolicyAt:
-        """This policy deciding for ``weights`` only, as a driver decides (refused now, not at
-        the first decision, if it cannot)."""
-        self.network_weights(weights)
-        return PolicyAt(self, weights)
-
-
-@dataclass(frozen=True, eq=False)
-class PolicyAt:
-    """A policy at fixed mode weights: ``decide(graph, snapshot)``, as a driver's (evaluation)."""
-    controller: PolicyController
-    weights: np.ndarray | None
-
-    @property
-    def name(self) -> str:
-        return self.controller.name
-
-    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot) -> Decision:
-        return self.controller.decide(graph, snapshot, self.weights)
+    def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot, network_weights: np.ndarray | None) -> np.ndarray:
+        """(N, A) Q values of the graph's rows (``network_weights``: from ``network_weights``)."""
+        return self.policy.q_values(graph, snapshot, network_weights)
 
 
 def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, planner: LanePlanner | None = None,
@@ -265,7 +200,7 @@ def load_controller(config: ProjectConfig, path: Path | str, shield: Shield, pla
         if mode is not None and policy.mode != mode:
             raise PolicyError(f'{policy.path}: a policy of mode {policy.mode!r}; algorithm {algorithm!r} at mode '
                               f'{mode!r} needs one of that mode')
-    return PolicyController(policy, shield, planner, ModeWeights(config))
+    return PolicyController(policy, shield, planner)
 
 
 def load_controllers(config: ProjectConfig, policy_dir: Path, planned: Iterable[Planned], shield: Shield,

@@ -23,8 +23,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from rclpy.subscription import Subscription  # noqa: E402
 
 from exit_decision.config import ConfigError  # noqa: E402
-from exit_decision.errors import PolicyError  # noqa: E402
-from exit_decision.ros.parameters import ParameterError  # noqa: E402
+from exit_decision.errors import ParameterError, PolicyError  # noqa: E402
 
 
 def take_waiting(subscription, limit: int | None = None) -> int:

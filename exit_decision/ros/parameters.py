@@ -9,7 +9,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from exit_decision.config import ProjectConfig, default_config_dir, load_project
-from exit_decision.errors import PolicyError
+from exit_decision.errors import ParameterError, PolicyError
 from exit_decision.model.modes import CUSTOM_MODE, ModeWeights
 from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies
 from exit_decision.model.selection import PolicySelection
@@ -27,10 +27,6 @@ def describe(description: str, *, read_only: bool = False, integer_range: tuple[
         descriptor.type = ParameterType.PARAMETER_DOUBLE
         descriptor.floating_point_range = [FloatingPointRange(from_value=float_range[0], to_value=float_range[1])]
     return descriptor
-
-
-class ParameterError(ValueError):
-    """A start-up parameter value a node cannot use; the text names the parameter and what is allowed."""
 
 
 def allowed_values(descriptor: ParameterDescriptor, default) -> str:
@@ -123,10 +119,10 @@ def declare_config(node: Node) -> ProjectConfig:
     return load_project(Path(value) if value else default_config_dir())
 
 
-def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, list[str], PolicySelection]:
+def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, PolicySelection]:
     """The decision node's policy parameters (policy_dir, modes, algorithm, algorithms, mode,
-    reward_weights): the policy directory, the modes of per-mode policies and the selection of the
-    start values (PolicyError, in one line, for values no policy can drive with)."""
+    reward_weights): the policy directory and the selection of the start values (PolicyError, in
+    one line, for values no policy can drive with)."""
     policy_dir = Path(declare(node, 'policy_dir', '', describe(
         'directory with <algorithm>[_<mode>]/policy.pt; empty: the shipped policies', read_only=True))
         or default_policy_dir())
@@ -143,13 +139,13 @@ def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, l
     if None in (algorithms[0], modes[0]):
         raise PolicyError('parameters algorithms and modes: give at least one of each')
     mode = declare(node, 'mode', modes[0], describe('decision mode', constraints=' | '.join([*config.modes, CUSTOM_MODE])))
-    start = ModeWeights(config).weights(mode if mode in config.modes else modes[0])
+    start = ModeWeights(config).mode(mode if mode in config.modes else modes[0]).weights
     weights = declare(node, 'reward_weights', start.tolist(), describe(
         'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
         '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode'))
     selection = PolicySelection(config, planned_policies(algorithms, modes), algorithm or algorithms[-1], mode,
                                 weights)
-    for name in ('algorithm', 'mode'):   # the start values the selection settled on
-        if getattr(selection, name) != node.get_parameter(name).value:
-            node.set_parameters([Parameter(name, Parameter.Type.STRING, getattr(selection, name))])
-    return policy_dir, modes, selection
+    for name, value in (('algorithm', selection.algorithm), ('mode', selection.mode.name)):   # the start values
+        if value != node.get_parameter(name).value:                                         # the selection settled on
+            node.set_parameters([Parameter(name, Parameter.Type.STRING, value)])
+    return policy_dir, selection

@@ -29,8 +29,8 @@ import sumolib
 from exit_decision.config import ScenarioConfig
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.scenario.sumo_inputs import build_routes
-from exit_decision.traffic import (INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, Arrival, CavCommand,
-                                   Collision, StepResult, TrafficSnapshot, VehicleState)
+from exit_decision.traffic import (CAV, HV1, HV2, HV3, INTENTION_KEEP, INTENTION_LEFT, INTENTION_RIGHT, Arrival,
+                                   CavCommand, Collision, StepResult, TrafficSnapshot, VehicleState)
 
 Backend = Literal['libsumo', 'traci']
 CavDriver = Literal['policy', 'sumo']
@@ -71,8 +71,8 @@ class HighwaySimulation:
         self._lanes = self.geometry.lanes
         # the edge each class's route ends with: paper 000's roles (Section 2.1)
         geometry, last = self.geometry, self.geometry.sections[-1]
-        self._leaves_by = {'HV1': last, 'HV2': last, 'HV3': geometry.first_exit.ramp,
-                           'CAV': geometry.target_exit.ramp if cav_driver == 'sumo' else last}
+        self._leaves_by = {HV1: last, HV2: last, HV3: geometry.first_exit.ramp,
+                           CAV: geometry.target_exit.ramp if cav_driver == 'sumo' else last}
         self._started = False
 
     # --- set-up -------------------------------------------------------------------------
@@ -163,7 +163,7 @@ class HighwaySimulation:
         commands = commands or {}
         self.validate_commands(commands)
         vehicle_api = self._sumo.vehicle
-        max_speed = self.scenario.vehicle_types['CAV'].max_speed
+        max_speed = self.scenario.vehicle_types[CAV].max_speed
         for vehicle in self._last.vehicles:
             if not vehicle.controlled:
                 continue
@@ -195,9 +195,9 @@ class HighwaySimulation:
         has just taken a ramp still occupies lane 0 near the diverge, so ramp vehicles count as
         lane-0 traffic for the clearance.
         """
-        clearance = self.scenario.vehicle_classes['HV2'].right_change_clearance
+        clearance = self.scenario.vehicle_classes[HV2].right_change_clearance
         for vehicle in self._last.vehicles:
-            if vehicle.vehicle_class != 'HV2' or not self.geometry.lane_change_exists(vehicle, -1):
+            if vehicle.vehicle_class != HV2 or not self.geometry.lane_change_exists(vehicle, -1):
                 continue
             target = [self._snapshot.neighbours_of(vehicle, lane_offset=-1)]
             if vehicle.lane_index == 1:
@@ -213,13 +213,13 @@ class HighwaySimulation:
         commit = self.scenario.road.diverge_commit_distance
         exits, target = self.geometry.exits, self.geometry.target_exit
         for vehicle in self._last.vehicles:
-            by_lane = vehicle.controlled or vehicle.vehicle_class == 'HV2'
+            by_lane = vehicle.controlled or vehicle.vehicle_class == HV2
             if not by_lane or self._committed.get(vehicle.vehicle_id) == vehicle.edge_id:
                 continue
             exit_ = exits.get(vehicle.edge_id)
             if exit_ is None or exit_.diverge_at - vehicle.position > commit:
                 continue
-            if vehicle.vehicle_class == 'HV2' and exit_ != target:
+            if vehicle.vehicle_class == HV2 and exit_ != target:
                 continue
             self._committed[vehicle.vehicle_id] = vehicle.edge_id
             takes_ramp = vehicle.lane_index == 0
@@ -262,16 +262,16 @@ class HighwaySimulation:
         vehicle_api = self._sumo.vehicle
         vehicle_api.subscribe(vehicle_id, self._vars)
         name = self._class_of[vehicle_id]
-        if name == 'CAV' and self.cav_driver == 'policy' and self.single_agent and any(
+        if name == CAV and self.cav_driver == 'policy' and self.single_agent and any(
                 v.controlled for v in self._snapshot.vehicles):
             self._released.add(vehicle_id)                # SGRL: one learner at a time, SUMO drives the rest
             self._intention[vehicle_id] = INTENTION_KEEP
-        elif name == 'CAV' and self.cav_driver == 'policy':
+        elif name == CAV and self.cav_driver == 'policy':
             vehicle_api.setSpeedMode(vehicle_id, 0)       # SUMO's safety off: the policy is in control
             vehicle_api.setLaneChangeMode(vehicle_id, 0)
             self._held_acceleration[vehicle_id] = 0.0
             self._intention[vehicle_id] = INTENTION_KEEP
-        elif name in ('HV2', 'HV3'):
+        elif name in (HV2, HV3):
             vehicle_api.setLaneChangeMode(vehicle_id, 0)  # HV2: only its own rule; HV3: lane 0 only
 
     def _read_step(self) -> StepResult:
@@ -302,7 +302,7 @@ class HighwaySimulation:
                        and before.lane_index != info.lane_index)
             if changed:
                 lane_changers.append(vehicle_id)
-            controlled = name == 'CAV' and self.cav_driver == 'policy' and vehicle_id not in self._released
+            controlled = name == CAV and self.cav_driver == 'policy' and vehicle_id not in self._released
             if controlled:
                 intention = self._intention[vehicle_id]
             elif changed:

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 from exit_decision.config import RoadConfig
 from exit_decision.scenario.geometry import RoadGeometry
 from exit_decision.scenario.sumo_inputs import LANE_WIDTH
-from exit_decision.traffic import VEHICLE_CLASSES, VehicleState
+from exit_decision.traffic import CAV, HV1, HV2, HV3, VEHICLE_CLASSES, VehicleState
 
 #: one colour per vehicle class (RGB in [0, 1]), the same in markers, diagrams and clips
-CLASS_COLOURS = {'CAV': (0.12, 0.47, 0.71), 'HV1': (0.17, 0.63, 0.17), 'HV2': (1.0, 0.5, 0.05),
-                 'HV3': (0.58, 0.40, 0.74)}
+CLASS_COLOURS = {CAV: (0.12, 0.47, 0.71), HV1: (0.17, 0.63, 0.17), HV2: (1.0, 0.5, 0.05),
+                 HV3: (0.58, 0.40, 0.74)}
 COLLISION_COLOUR = (0.84, 0.15, 0.16)
 ROAD_COLOUR = (0.35, 0.35, 0.35)
 VEHICLE_WIDTH = 1.8   # [m] drawn width of every vehicle (the states carry lengths only)

@@ -54,7 +54,7 @@ def switch_report(bag: Path, config: ProjectConfig, policy_dir: Path, algorithm:
     without it (the mode before throughout), like for like; a line saying so without a switch."""
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.switch import policy_steps, switch_table, switch_windows
-    from exit_decision.model.driving import PolicyDriver
+    from exit_decision.driving.policy import policy_driver
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.names import planned, policy_path
     from exit_decision.model.policy import ACTION_SPACES, load_controller
@@ -71,11 +71,12 @@ def switch_report(bag: Path, config: ProjectConfig, policy_dir: Path, algorithm:
         which = planned(algorithm, switch.before)
         controller = load_controller(config, policy_path(policy_dir, *which), env.shield, env.planner, which,
                                      ACTION_SPACES)
-        driver, episode_seed = PolicyDriver(controller, config), seed + switch.episode
+        driver, episode_seed = policy_driver(controller, config), seed + switch.episode
         for label, after in ((f'environment, {switch.before} -> {switch.after}', switch.after),
                              (f'environment, {switch.before} throughout', None)):
-            steps = policy_steps(env, driver, episode_seed, modes.weights(switch.before), switch.time + window,
-                                 None if after is None else (switch.time, modes.weights(after)))
+            driver.set_mode(modes.mode(switch.before))
+            steps = policy_steps(env, driver, episode_seed, switch.time + window,
+                                 None if after is None else (switch.time, modes.mode(after)))
             figures.append((label, switch_windows(steps, switch.time, window, threshold)))
     finally:
         env.close()

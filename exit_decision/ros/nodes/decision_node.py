@@ -5,11 +5,10 @@ corrupt or incompatible file stops it at start, naming the path) in a thread: th
 services answer meanwhile, and it subscribes and offers commands once they are loaded.
 
 ``mode``, ``algorithm`` and ``reward_weights`` switch at runtime through the standard parameter
-service, kept consistent and checked by ``model.selection``; an accepted change drives from the
-next graph, and ends every option held. Each decision step pairs the graph with the vehicle
-states of the same step and runs ``model.driving.PolicyDriver``: the commands (stamped with
-mode, algorithm and policy file), then the shield's overrides (grid) or the options each CAV
-holds (/exit_decision/cav_options). Diagnostics count decisions, overrides and rejections.
+service, resolved once into a ``Mode`` (``model.selection``) that the active policy driver
+drives in from the next graph; every option held ends. Each decision pairs the graph with the
+states of its step and publishes the commands (stamped with mode, algorithm and policy file),
+then the shield's overrides (grid) or the options held (/exit_decision/cav_options).
 
 Composed with the graph builder (``graph_and_decision``), it is handed each step's checked
 states and graph; alone, it subscribes to both and takes a message only if it can follow the
@@ -48,13 +47,13 @@ class DecisionNode(Node):
     """``composed``: the graph builder of the same process calls ``begin_episode`` and ``decide``
     with each decision step's checked states and graph; the node subscribes to neither."""
 
-    def __init__(self, composed: bool = False):
-        super().__init__('decision_node')
+    def __init__(self, composed: bool = False, context=None):
+        super().__init__('decision_node', context=context)
         self.composed = composed
         self.config = config = declare_config(self)
         declare_thread_priority(self)
         declare_cpu_affinity(self)
-        self.policy_dir, self.modes, self.selection = declare_policy_selection(self, config)
+        self.policy_dir, self.selection = declare_policy_selection(self, config)
         grid = ActionGrid(config.env.actions)
         geometry = RoadGeometry.of(config.scenario.road)
         self.shield, self.limits = Shield.of(config, grid, geometry), StateLimits.of(config, geometry)
@@ -66,7 +65,7 @@ class DecisionNode(Node):
         self.last_decided: tuple[int, int] = (-1, -1)
         self.diagnostics = Diagnostics(self, 'decision_node')
         self.pairing = StepPairing(config.scenario.max_steps, self.interval, self.diagnostics.count)
-        self.drivers: dict = {}       # (algorithm, mode) -> model.driving.PolicyDriver, once loaded
+        self.drivers: dict = {}       # (algorithm, mode) -> driving.policy.PolicyDriver, once loaded
         self.loaded: dict | Exception | None = None   # what the loading thread hands over (drivers or error)
         self.when_loaded: list = []   # called once the policies are loaded (composed: the graph builder subscribes)
         self.loaded_signal = self.create_guard_condition(self.start_deciding)
@@ -76,9 +75,9 @@ class DecisionNode(Node):
         """(Thread) Load, check and warm up the planned policies; hand them (or the error) to
         ``start_deciding`` in the executor's thread."""
         try:
-            from exit_decision.model.driving import load_drivers
+            from exit_decision.driving.policy import load_drivers
             self.loaded = load_drivers(self.config, self.policy_dir, self.selection.planned, self.shield,
-                                       self.selection.modes.weights(self.modes[0]))
+                                       self.selection.mode)
         except Exception as error:  # noqa: BLE001 (handed to the executor's thread, which stops the node with it)
             self.loaded = error
         self.loaded_signal.trigger()
@@ -91,6 +90,7 @@ class DecisionNode(Node):
         import torch
         torch.set_num_threads(1)   # per thread: this one decides
         self.drivers = self.loaded
+        self.bind_mode()   # a set during loading chose the mode the drivers were made in, or another
         self.destroy_guard_condition(self.loaded_signal)
         self.publisher = self.create_publisher(CavCommandArray, COMMANDS_TOPIC, COMMANDS_QOS)
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
@@ -102,9 +102,7 @@ class DecisionNode(Node):
         for callback in self.when_loaded:
             callback()
         self.get_logger().info(f'loaded {len(self.drivers)} policies from {self.policy_dir}; '
-                               f'active: {self.selection.algorithm}/{self.selection.mode}')
-
-    # --- parameters: model.selection keeps mode, algorithm and reward_weights consistent ----------
+                               f'active: {self.selection.algorithm}/{self.selection.mode.name}')
 
     def complete_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
         given = {p.name: p.value for p in parameters if p.name in SELECTION_PARAMETERS}
@@ -120,12 +118,14 @@ class DecisionNode(Node):
         changes = {p.name: p.value for p in parameters if p.name in SELECTION_PARAMETERS}
         if changes:
             self.selection.apply(changes)
-            for driver in self.drivers.values():   # a switch ends every option held
-                driver.reset()
+            self.bind_mode()
             s = self.selection
-            self.get_logger().info(f'active policy now {s.algorithm}/{s.mode} {s.weights.tolist()}')
+            self.get_logger().info(f'active policy now {s.algorithm}/{s.mode.name} {s.mode.weights.tolist()}')
 
-    # --- messages ---------------------------------------------------------------------------
+    def bind_mode(self) -> None:
+        """The active driver drives in the selection's mode; every option held ends (a switch)."""
+        for key, driver in self.drivers.items():
+            driver.set_mode(self.selection.mode) if key == self.selection.key else driver.reset()
 
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
@@ -135,8 +135,7 @@ class DecisionNode(Node):
         """An episode's first graph or states: the streams follow it, no option is held."""
         self.pairing.start(episode)
         self.last_decided = (episode, -1)
-        for driver in self.drivers.values():
-            driver.reset()
+        self.bind_mode()   # no option held
 
     def on_states(self, raw: bytes) -> None:
         gate = self.pairing.states_gate
@@ -176,12 +175,12 @@ class DecisionNode(Node):
         self.last_decided = key
         s, driver = self.selection, self.drivers[self.selection.key]
         try:
-            decision = driver.decide(graph, snapshot, s.weights, key[1] * self.step_length)
+            decision = driver.decide(graph, snapshot, key[1] * self.step_length)
         except KeyError as error:   # a CAV of the graph is not in the states
             self.diagnostics.reject('graphs', f'graph of step {key[1]}', f'vehicle {error} is not in the states')
             return
         stamped = {'episode': key[0], 'step': key[1], 'stamp': stamp}
-        labels = {'mode': s.mode, 'algorithm': s.algorithm, 'policy': str(driver.controller.policy.path)}
+        labels = {'mode': s.mode.name, 'algorithm': s.algorithm, 'policy': str(driver.source.policy.path)}
         self.publisher.publish(encode_commands(decision.commands, **stamped, **labels))
         self.diagnostics.count('decisions', len(decision.commands))
         self.diagnostics.count('shield_overrides', len(decision.overrides))

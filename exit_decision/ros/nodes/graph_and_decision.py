@@ -20,7 +20,7 @@ it alone takes the states.
 from __future__ import annotations
 
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.parameters import ParameterError
+from exit_decision.errors import ParameterError
 from exit_decision.ros.nodes.decision_node import DecisionNode
 from exit_decision.ros.nodes.graph_builder import GraphBuilderNode
 

@@ -29,7 +29,8 @@ from rosbags.rosbag2 import Reader
 from exit_decision.ros.bags.storage import (BAG_ALLOWED, READ_ERRORS, BagError, first_line, message_class, open_bag,
                                             topic_qos)
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.parameters import ParameterError, declare, declare_cpu_affinity, describe, follow
+from exit_decision.errors import ParameterError
+from exit_decision.ros.parameters import declare, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, STATES_TOPIC
 
 PASS_SETTLE = 0.5   # [s] between two passes of a looped bag (see let_the_pass_settle)

@@ -37,7 +37,8 @@ from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_
                                             topic_qos, typestore)
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.parameters import (ParameterError, check_choice, declare, declare_config, declare_cpu_affinity,
+from exit_decision.errors import ParameterError
+from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           describe)
 from exit_decision.ros.topics import COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC
 from exit_decision.step_gaps import StepGaps

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from exit_decision.config.seeds import TEST_SEED
 from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
 from exit_decision.ros.stack import cpu_affinity, realtime
 
@@ -50,7 +51,7 @@ ARGUMENTS: dict[str, Argument] = {
     'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
                           "of config/modes.yaml", list),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
-    'seed': Argument('10000', 'seed of the first episode', int),
+    'seed': Argument(str(TEST_SEED), 'seed of the first episode', int),
     'timing': Argument('synchronous', 'synchronous or realtime'),
     'bag_path': Argument('', 'bag directory (must not exist); empty: the recorder\'s default, '
                              'bags/exit_decision_<date>_<time>, a new one each run'),
