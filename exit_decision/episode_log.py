@@ -10,6 +10,16 @@ corridor over own speed, over the CAV-steps with a leader within ``HEADWAY_RANGE
 above ``HEADWAY_MIN_SPEED``; what the modes' driving styles differ in), p_CAV and p_HV2
 (left by the target exit / entered), the episode reward and the steps. Kept below the environment,
 which records into it; evaluation summarises the metrics.
+
+What the traffic pays for the CAVs (issue 39; these need the step's snapshot, NaN without it):
+N_braking_caused_CAV, the emergency-braking events of N_braking (any vehicle, CAVs included)
+whose leader at the event's first step is a CAV within ``CAUSED_RANGE`` (bumper gap, own
+corridor): the CAV-caused share of N_braking. min_TTC, the episode's smallest time to
+collision of any vehicle to its leader in its own corridor (bumper gap over the closing speed,
+a gap that is not closing has none), and min_TTC_CAV, the same over followers whose leader is
+a CAV. Both are capped at ``TTC_CAP`` (an episode without a closing gap scores the cap): the
+summaries drop values that are not finite, so inf or NaN would leave the safest episodes out
+of a mean and bias it low.
 """
 from __future__ import annotations
 
@@ -21,9 +31,11 @@ from exit_decision.reward import scalar
 from exit_decision.traffic import CAV, HV2, StepResult, TrafficSnapshot
 
 METRICS = ('v_AVs', 'v_s', 'p_collision', 'p_collision_CAV', 'N_braking', 'N_braking_CAV', 'braking_steps',
-           'headway_CAV', 'p_CAV', 'p_HV2', 'reward', 'steps')
+           'N_braking_caused_CAV', 'min_TTC', 'min_TTC_CAV', 'headway_CAV', 'p_CAV', 'p_HV2', 'reward', 'steps')
 HEADWAY_RANGE = 100.0      # [m] a leader farther than this does not set the CAV's headway
 HEADWAY_MIN_SPEED = 5.0    # [m/s] below, a headway says nothing about the style (queues, stops)
+CAUSED_RANGE = 50.0        # [m] a CAV leader this close is held responsible (the `traffic` reward's leader_range)
+TTC_CAP = 10.0             # [s] the largest min_TTC reported (the reward's time-gap cap, SAFETY_TIME_CAP)
 
 
 @dataclass
@@ -41,6 +53,10 @@ class EpisodeLog:
     cav_braking_events: int = 0
     headway_sum: float = 0.0
     headway_steps: int = 0
+    caused_braking_events: int = 0
+    min_ttc: float = TTC_CAP
+    min_ttc_cav: float = TTC_CAP
+    traffic_steps: int = 0    # steps recorded with a snapshot: the traffic metrics are NaN without one
     entered: dict[str, set[str]] = field(default_factory=dict)
     target_exits: dict[str, int] = field(default_factory=dict)   # class -> vehicles that left by the target exit
     reward_weights: np.ndarray | None = None    # (4, 2) multipliers of the mode the return is scored under
@@ -49,8 +65,11 @@ class EpisodeLog:
 
     def record(self, step: StepResult, reward_vector: np.ndarray | None = None,
                snapshot: TrafficSnapshot | None = None) -> None:
-        """One step; the CAVs' headways need the step's ``snapshot`` (not counted without it)."""
+        """One step; the CAVs' headways and what the traffic pays need the step's ``snapshot``
+        (not counted without it)."""
         self.steps += 1
+        if snapshot is not None:
+            self._record_traffic(step, snapshot)
         self.peak_vehicles = max(self.peak_vehicles, len(step.vehicles))
         for vehicle in step.vehicles:
             self.entered.setdefault(vehicle.vehicle_class, set()).add(vehicle.vehicle_id)
@@ -77,6 +96,21 @@ class EpisodeLog:
         if reward_vector is not None:
             self.reward_vector += reward_vector
 
+    def _record_traffic(self, step: StepResult, snapshot: TrafficSnapshot) -> None:
+        """Every vehicle's time to collision with its leader, and the braking events whose
+        leader is a CAV (module docstring)."""
+        self.traffic_steps += 1
+        starts = set(step.braking_starts)
+        for vehicle, leader, gap in snapshot.leader_pairs():
+            if vehicle.vehicle_id in starts and leader.is_cav and gap <= CAUSED_RANGE:
+                self.caused_braking_events += 1
+            closing = vehicle.speed - leader.speed
+            if closing > 0:
+                ttc = max(gap, 0.0) / closing
+                self.min_ttc = min(self.min_ttc, ttc)
+                if leader.is_cav:
+                    self.min_ttc_cav = min(self.min_ttc_cav, ttc)
+
     def count(self, vehicle_class: str) -> int:
         return len(self.entered.get(vehicle_class, ()))
 
@@ -91,6 +125,9 @@ class EpisodeLog:
             'N_braking': float(self.braking_events),
             'N_braking_CAV': float(self.cav_braking_events),
             'braking_steps': float(self.braking_steps),
+            'N_braking_caused_CAV': float(self.caused_braking_events) if self.traffic_steps else nan,
+            'min_TTC': self.min_ttc if self.traffic_steps else nan,
+            'min_TTC_CAV': self.min_ttc_cav if self.traffic_steps else nan,
             'headway_CAV': self.headway_sum / self.headway_steps if self.headway_steps else nan,
             'p_CAV': self.target_exits.get(CAV, 0) / n_cav if n_cav else nan,
             'p_HV2': self.target_exits.get(HV2, 0) / n_hv2 if n_hv2 else nan,

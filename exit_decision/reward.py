@@ -24,7 +24,9 @@ counts the efficiency and smooth-driving incentives per metre driven, so a CAV e
 the road it covers, not for the time it stays (per step, faster safe driving never paid:
 docs/design.md), while its safety incentive stays per step, which still pays time on the road;
 ``headway`` (ours, the default since issue 28) counts the safety incentive per metre too,
-graded by the time headway kept (``MatrixReward.safety``), Table 4's punishments unchanged.
+graded by the time headway kept (``MatrixReward.safety``), Table 4's punishments unchanged;
+``traffic`` (ours, issue 39) is ``headway`` plus a MOBIL-style term that charges a CAV, on its
+own comfort punishment, the hard braking of the vehicle behind it (``MatrixReward.caused_braking``).
 """
 from __future__ import annotations
 
@@ -195,13 +197,39 @@ class MatrixReward:
             t2 = (around.leader.position - vehicle.position) / (vehicle.speed - around.leader.speed)
         return t1, t2
 
+    def caused_braking(self, step: StepResult, snapshot: TrafficSnapshot) -> dict[str, float]:
+        """The ``traffic`` variant's MOBIL-style term, raw, per CAV charged: every vehicle
+        decelerating harder than ``b_safe`` whose leader (own corridor, bumper gap within
+        ``leader_range``) is a CAV costs that CAV -weight x (deceleration - b_safe) this step
+        (linear in the excess, as MOBIL's accelerations are: weight 1000 makes a follower at
+        6 m/s^2 cost what the CAV's own emergency braking step costs, -2000). Whoever caused it, a
+        lane change in front of the follower or a braking ahead of it, the leader of the step is
+        charged; a human leader charges nobody, nor does a released CAV (out of the task).
+        Empty when the variant has no such term."""
+        term = self.config.caused_braking
+        charges: dict[str, float] = {}
+        if term is None:
+            return charges
+        for vehicle in step.vehicles:
+            excess = -vehicle.acceleration - term.b_safe
+            if excess <= 0:
+                continue
+            around = snapshot.neighbours_of(vehicle)
+            leader = around.leader
+            if (leader is not None and leader.is_cav and around.leader_gap <= term.leader_range
+                    and leader.vehicle_id not in step.released):
+                charges[leader.vehicle_id] = charges.get(leader.vehicle_id, 0.0) - term.weight * excess
+        return charges
+
     # --- the step's vector --------------------------------------------------------------------
 
     def raw(self, inputs: StepRewardInputs) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Unscaled sub-rewards (4, 2) per CAV and shared, before the dynamic factors: 300 per
         CAV or HV2 leaving by the task exit, -60000 once if any collision (eq. 21-22; owned by
-        the CAVs in it, shared if none), then eq. 23-28 per vehicle. A CAV released after a
-        missed exit earns and loses nothing more but its collisions."""
+        the CAVs in it, shared if none), then eq. 23-28 per vehicle, and (``traffic``) the hard
+        braking each CAV causes behind it on its comfort punishment (so it enters eq. 20's s
+        like the CAV's own emergency braking). A CAV released after a missed exit earns and
+        loses nothing more but its collisions."""
         step, snapshot = inputs.step, inputs.snapshot
         shared = np.zeros((4, 2))
         own: dict[str, np.ndarray] = {}
@@ -231,6 +259,8 @@ class MatrixReward:
                 cell[SAFETY] += self.safety(vehicle, snapshot)
             elif self.config.comfort_vehicles == 'all':
                 shared[COMFORT] += self.comfort_one(vehicle)
+        for vehicle_id, charge in self.caused_braking(step, snapshot).items():
+            of(vehicle_id)[COMFORT, PUNISHMENT] += charge
         shared[COMFORT, PUNISHMENT] += self.lane_change_punishment(inputs.recent_lane_changes)
         return own, shared
 

@@ -8,7 +8,7 @@ along the road from the start of the first section. Edge names are the scenario 
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -101,6 +101,13 @@ class TrafficSnapshot:
         follower = group[behind] if behind >= 0 else None
         return Neighbours(leader, leader.position - leader.length - position if leader else float('inf'),
                           follower, position - length - follower.position if follower else float('inf'))
+
+    def leader_pairs(self) -> Iterator[tuple[VehicleState, VehicleState, float]]:
+        """(follower, leader, bumper gap [m]) of every vehicle that has a leader in its corridor:
+        one pass over the sorted corridors, for metrics that look at every vehicle."""
+        for group in self._lanes.values():
+            for follower, leader in zip(group, group[1:]):
+                yield follower, leader, leader.position - leader.length - follower.position
 
     def neighbours_of(self, vehicle: VehicleState, lane_offset: int = 0) -> Neighbours:
         """Neighbours of a vehicle in its own corridor, or in the highway lane ``lane_offset`` away."""

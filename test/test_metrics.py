@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from exit_decision.episode_log import METRICS, EpisodeLog
+from exit_decision.episode_log import METRICS, TTC_CAP, EpisodeLog
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.traffic import Arrival, Collision, StepResult, TrafficSnapshot
 
@@ -42,6 +42,7 @@ def test_metrics_of_a_hand_made_episode():
     assert m['reward'] == pytest.approx(0.0) and m['steps'] == 4
     assert m['N_braking_CAV'] == 1
     assert math.isnan(m['headway_CAV']), 'no snapshot given: no headway counted'
+    assert math.isnan(m['N_braking_caused_CAV']) and math.isnan(m['min_TTC']), 'nor what the traffic pays'
 
 
 def test_cav_time_headway_counts_close_leaders_of_moving_cavs_only():
@@ -55,6 +56,41 @@ def test_cav_time_headway_counts_close_leaders_of_moving_cavs_only():
     vehicles = [cav, leader, slow, slow_leader, far, far_leader]
     log.record(StepResult(1, 0.1, vehicles), snapshot=TrafficSnapshot(vehicles))
     assert log.metrics()['headway_CAV'] == pytest.approx(30.0 / 20.0)
+
+
+def record(log, step, vehicles, braking_starts=()):
+    log.record(StepResult(step, step / 10, vehicles, braking_starts=list(braking_starts)),
+               snapshot=TrafficSnapshot(vehicles))
+
+
+def test_brakings_caused_by_cavs_and_the_minimum_time_to_collision():
+    """Lane 0: an HV1 brakes hard behind a CAV (caused), twice in a row (one event), then again
+    (a second event); lane 1: an HV1 brakes behind an HV3 (not caused); lane 2: a CAV brakes hard
+    behind a CAV 60 m ahead (beyond the range: not caused). TTC: lane 0 closes 10 m at 5 m/s (2 s),
+    lane 1 20 m at 4 m/s (5 s), lane 2 opens."""
+    log = EpisodeLog()
+
+    def vehicles(brake_0, brake_1, brake_2):
+        return [make_vehicle('c', 'CAV', lane=0, position=100.0, speed=10.0),
+                make_vehicle('h', 'HV1', lane=0, position=85.0, speed=15.0, acceleration=brake_0),
+                make_vehicle('l', 'HV3', lane=1, position=100.0, speed=10.0),
+                make_vehicle('g', 'HV1', lane=1, position=75.0, speed=14.0, acceleration=brake_1),
+                make_vehicle('c2', 'CAV', lane=2, position=170.0, speed=20.0),
+                make_vehicle('c3', 'CAV', lane=2, position=105.0, speed=10.0, acceleration=brake_2)]
+
+    record(log, 1, vehicles(-5.0, -5.0, -5.0), braking_starts=['h', 'g', 'c3'])
+    record(log, 2, vehicles(-5.0, 0.0, -5.0))
+    record(log, 3, vehicles(0.0, 0.0, 0.0))
+    record(log, 4, vehicles(-6.0, 0.0, 0.0), braking_starts=['h'])
+    m = log.metrics()
+    assert m['N_braking'] == 4 and m['N_braking_caused_CAV'] == 2
+    assert m['min_TTC'] == pytest.approx(2.0) and m['min_TTC_CAV'] == pytest.approx(2.0)
+    # without a CAV ahead of a closing follower, min_TTC_CAV stays at the cap
+    log = EpisodeLog()
+    record(log, 1, vehicles(0.0, 0.0, 0.0)[2:])
+    m = log.metrics()
+    assert m['min_TTC'] == pytest.approx(5.0) and m['min_TTC_CAV'] == TTC_CAP
+    assert m['N_braking_caused_CAV'] == 0
 
 
 def test_empty_log_gives_nan_not_zero_division():

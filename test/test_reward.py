@@ -1,10 +1,14 @@
 """The reward function matrix, each sub-reward pinned against hand-computed values, and its
 vector form: owners, per-metre incentives, any mode's scalar from one vector."""
+import dataclasses
 import math
+import shutil
 
 import numpy as np
 import pytest
+import yaml
 
+from exit_decision.config import ConfigError, default_config_dir, load_project
 from exit_decision.reward import (BaselineReward, IntentionReward, MatrixReward, StepRewardInputs, TermsReward,
                                   mode_weights, scalar, weight_input)
 from exit_decision.traffic import Arrival, Collision, StepResult, TrafficSnapshot
@@ -221,3 +225,95 @@ def test_paper_001_reward_is_eq_5_on_the_intention_gradient(project_config):
         'ramp': 0.0,
         'done': 1.0 * 2.0 * 1.0, 'lost': -2.0})
     assert shared == 0.0
+
+
+# --- the `traffic` variant: the hard braking a CAV causes behind it (issue 39) -------------------
+
+@pytest.fixture()
+def traffic(project_config):
+    return MatrixReward(project_config.reward('traffic'), STEP)
+
+
+def test_traffic_variant_is_headway_plus_the_caused_braking_term(project_config):
+    traffic, headway = project_config.reward('traffic'), project_config.reward('headway')
+    assert traffic.model_dump(exclude={'caused_braking'}) == headway.model_dump(exclude={'caused_braking'})
+    assert headway.caused_braking is None
+    term = traffic.caused_braking
+    assert (term.b_safe, term.leader_range) == (4.0, 50.0) and term.weight > 0
+    assert project_config.env.reward_variant == 'headway', 'the default variant is unchanged'
+
+
+def test_a_bad_key_in_the_traffic_variant_is_refused_by_name(tmp_path):
+    target = tmp_path / 'config'
+    shutil.copytree(default_config_dir(), target)
+    data = yaml.safe_load((target / 'reward.yaml').read_text())
+    data['variants']['traffic']['caused_braking']['b_saef'] = 4.0
+    (target / 'reward.yaml').write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r'reward\.yaml(.|\n)*traffic\.matrix\.caused_braking\.b_saef'):
+        load_project(target)
+
+
+def behind(leader_class, follower_acceleration, gap=10.0, leader_id='lead'):
+    """A leader at 100 m and a follower ``gap`` metres (bumper to bumper) behind it."""
+    leader = make_vehicle(leader_id, leader_class, position=100.0, speed=15.0)
+    follower = make_vehicle(f'{leader_id}_f', position=100.0 - 5.0 - gap, speed=15.0,
+                            acceleration=follower_acceleration)
+    return [leader, follower]
+
+
+def test_no_hard_braking_behind_a_cav_costs_it_nothing(traffic, project_config):
+    headway = MatrixReward(project_config.reward('headway'), STEP)
+    step = step_of(behind('CAV', -4.0) + behind('CAV', 1.0, leader_id='c2'))     # at b_safe: not beyond it
+    assert traffic.caused_braking(step, TrafficSnapshot(step.vehicles)) == {}
+    own, shared = traffic.raw(inputs(step))
+    expected_own, expected_shared = headway.raw(inputs(step))
+    assert own.keys() == expected_own.keys()
+    for vehicle_id in own:
+        np.testing.assert_allclose(own[vehicle_id], expected_own[vehicle_id])
+    np.testing.assert_allclose(shared, expected_shared)
+
+
+def test_caused_braking_is_charged_to_the_cav_leader_only(traffic, project_config):
+    """A follower braking beyond b_safe charges its CAV leader's comfort punishment, nothing
+    else; behind a human, too far behind, or behind a released CAV it charges nobody."""
+    headway = MatrixReward(project_config.reward('headway'), STEP)
+    weight = traffic.config.caused_braking.weight
+    groups = {'cav': behind('CAV', -6.0, leader_id='cav'),                # lane 0: charged
+              'human': behind('HV1', -6.0, leader_id='human'),            # lane 1: a human leader
+              'far': behind('CAV', -6.0, gap=60.0, leader_id='far'),      # lane 2: beyond leader_range
+              'gone': behind('CAV', -6.0, leader_id='gone')}              # on a ramp, released
+    vehicles = [dataclasses.replace(v, lane_index=lane) for lane, key in enumerate(('cav', 'human', 'far'))
+                for v in groups[key]]
+    vehicles += [dataclasses.replace(v, edge_id='Exit_1', on_highway=False, lane_speed_limit=15.0)
+                 for v in groups['gone']]
+    step = step_of(vehicles, released=['gone'])
+    assert traffic.caused_braking(step, TrafficSnapshot(step.vehicles)) == pytest.approx({'cav': -2.0 * weight})
+    own, shared = traffic.raw(inputs(step))
+    expected_own, expected_shared = headway.raw(inputs(step))
+    np.testing.assert_allclose(shared, expected_shared)
+    for vehicle_id in expected_own:
+        difference = own[vehicle_id] - expected_own[vehicle_id]
+        charged = np.zeros((4, 2))
+        if vehicle_id == 'cav':
+            charged[2, 1] = -2.0 * weight          # the comfort row's punishment
+        np.testing.assert_allclose(difference, charged, err_msg=vehicle_id)
+
+
+def test_caused_braking_is_proportional_to_the_excess_deceleration(traffic):
+    weight, b_safe = traffic.config.caused_braking.weight, traffic.config.caused_braking.b_safe
+
+    def charge(acceleration):
+        step = step_of(behind('CAV', acceleration))
+        return traffic.caused_braking(step, TrafficSnapshot(step.vehicles)).get('lead', 0.0)
+
+    assert charge(-(b_safe + 0.5)) == pytest.approx(-0.5 * weight)
+    assert charge(-(b_safe + 3.0)) == pytest.approx(6 * charge(-(b_safe + 0.5)))
+    assert charge(-b_safe) == 0.0
+
+
+def test_caused_braking_reaches_the_cavs_own_credit_in_the_vector(traffic):
+    step = step_of(behind('CAV', -7.0))
+    vector = traffic.vector(inputs(step))
+    own, _ = traffic.raw(inputs(step))
+    assert own['lead'][2, 1] == pytest.approx(-3.0 * traffic.config.caused_braking.weight)
+    assert vector.per_vehicle['lead'][2, 1] == pytest.approx(own['lead'][2, 1] / traffic.config.scales.comfort)

@@ -209,6 +209,15 @@ class SpeedBounds(Strict):
     ramp: NonNegativeFloat
 
 
+class CausedBrakingConfig(Strict):
+    """The ``traffic`` variant's MOBIL-style term (reward.py ``MatrixReward.caused_braking``):
+    a vehicle decelerating harder than ``b_safe`` charges ``weight`` per m/s^2 of the excess,
+    per simulation step, to the comfort punishment of its leader if that is a CAV."""
+    b_safe: PositiveFloat                # [m/s^2] MOBIL's safe deceleration; beyond it, the leader pays
+    weight: PositiveFloat                # raw comfort punishment per m/s^2 of excess, per step
+    leader_range: PositiveFloat          # [m] bumper gap within which the leader is held responsible
+
+
 class MatrixRewardConfig(Strict):
     kind: Literal['matrix']
     exponent_cap: PositiveFloat | None
@@ -220,6 +229,8 @@ class MatrixRewardConfig(Strict):
     # metre driven graded by the time headway kept (reward.py MatrixReward.headway_grade)
     safety_incentive: Literal['hazard_diagram', 'headway'] = 'hazard_diagram'
     headway_full: PositiveFloat = 3.0   # [s] the headway that earns the whole safe-gaps incentive
+    # the hard braking a CAV causes to its follower, on the CAV's comfort punishment (None: not priced)
+    caused_braking: CausedBrakingConfig | None = None
     v_min: SpeedBounds
     scales: SubRewardValues
 
