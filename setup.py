@@ -13,6 +13,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.xml')),
+        ('share/' + PACKAGE + '/config/sros2', glob('config/sros2/*.xml')),   # docs/ros.md, "Who may publish"
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
     ] + [('share/' + PACKAGE + '/' + directory, [directory + '/policy.pt'])
          for directory in sorted(glob('policies/*')) if glob(directory + '/policy.pt')],

@@ -18,17 +18,19 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from exit_decision.ros.dds_defaults import apply_dds_defaults
-from exit_decision.ros.stack.node_table import ARGUMENTS, BRIDGE, NODE_NAMES, plan
+from exit_decision.ros.stack.node_table import ARGUMENTS, BRIDGE, NODE_NAMES, enclave, plan
 
 apply_dds_defaults()   # this process too (launch_ros may start a node in it), and every node it starts
 
 
 def start_nodes(context):
-    """The table's nodes for the arguments given; each one's exit shuts the launch down."""
+    """The table's nodes for the arguments given, each process in its SROS2 enclave (used only
+    when ROS_SECURITY_ENABLE=true: docs/ros.md, "Who may publish"); each one's exit shuts the
+    launch down."""
     given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
     # a composed process is not named: a name would rename each of its nodes
     return [Node(package='exit_decision', executable=name, parameters=[parameters], output='screen',
-                 name=name if NODE_NAMES[name] == (name,) else None,
+                 name=name if NODE_NAMES[name] == (name,) else None, ros_arguments=['--enclave', enclave(name)],
                  on_exit=[Shutdown(reason=f'{BRIDGE} has run its episodes' if name == BRIDGE else
                                    f'{name} exited; the stack cannot go on without it')])
             for name, parameters in plan(given)]

@@ -1,4 +1,5 @@
-"""The topic names and the QoS each one is published and subscribed with.
+"""The QoS each topic is published and subscribed with, and the topic names (``topic_names.py``,
+re-exported here).
 
 QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
 - vehicle_states, traffic_graph, cav_commands: reliable (in synchronous mode every message
@@ -29,16 +30,9 @@ QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
 """
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-STATES_TOPIC = '/exit_decision/vehicle_states'
-GRAPH_TOPIC = '/exit_decision/traffic_graph'
-COMMANDS_TOPIC = '/exit_decision/cav_commands'
-EPISODE_TOPIC = '/exit_decision/episode_events'
-CLOCK_TOPIC = '/clock'
-DIAGNOSTICS_TOPIC = '/diagnostics'
-MARKERS_TOPIC = '/exit_decision/markers'
-OVERRIDES_TOPIC = '/exit_decision/shield_overrides'
-#: the option each policy CAV holds, per decision step (a policy over options only)
-OPTIONS_TOPIC = '/exit_decision/cav_options'
+from exit_decision.ros.topic_names import (CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC,  # noqa: F401 (re-exported)
+                                           EPISODE_TOPIC, GRAPH_TOPIC, MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC,
+                                           STATES_TOPIC)
 
 STREAM_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=100)
 #: what the stack's nodes publish and subscribe states, graph and commands with (see above)

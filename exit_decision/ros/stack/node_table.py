@@ -7,6 +7,11 @@ nodes that list it; an empty value leaves the node's own default. ``cpu_split`` 
 parameter: it sets each node's ``cpu_affinity``, the decision path's cores or the onlookers'
 (``ros/stack/cpu_affinity.py``). The bridge comes last and waits until every other node of the plan
 that listens to the vehicle states is there.
+
+Each node's topics are here too (``ENDPOINTS``): what it publishes and subscribes to besides what
+every rclpy node does. The SROS2 policy (config/sros2/policy.xml) gives each process an enclave
+(``enclave``) that allows exactly these, and test/test_sros2.py holds the two together and against
+the running nodes: a node added here without its permissions fails the test.
 """
 from __future__ import annotations
 
@@ -16,6 +21,8 @@ from dataclasses import dataclass
 from exit_decision.config.seeds import TEST_SEED
 from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
 from exit_decision.ros.stack import cpu_affinity, realtime
+from exit_decision.ros.topic_names import (CLOCK_TOPIC, COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC,
+                                           MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC)
 
 BRIDGE = 'sumo_bridge'
 
@@ -76,6 +83,63 @@ NODES: tuple[StackNode, ...] = (
     StackNode(BRIDGE, ('config_dir', 'episodes', 'seed', 'timing', 'use_sim_time', 'thread_priority'),
               listens_to_states=False, decision_path=True),
 )
+
+
+@dataclass(frozen=True)
+class Endpoints:
+    """What a node publishes and subscribes to, and the services of other nodes it calls, besides
+    what every rclpy node does (``STANDARD_PUBLISHES``, ``STANDARD_SUBSCRIBES``, its own ``PARAMETER_SERVICES``)."""
+    publishes: tuple[str, ...] = ()
+    subscribes: tuple[str, ...] = ()
+    calls: tuple[str, ...] = ()
+
+
+#: every rclpy node publishes its log and its parameter changes (sros2's common node profile)
+STANDARD_PUBLISHES = ('/rosout', '/parameter_events')
+#: ... may follow parameter events, and takes /clock under use_sim_time
+STANDARD_SUBSCRIBES = ('/parameter_events', CLOCK_TOPIC)
+#: the services every Jazzy rclpy node answers, under its own name (~/...)
+PARAMETER_SERVICES = ('describe_parameters', 'get_parameter_types', 'get_parameters', 'get_type_description',
+                      'list_parameters', 'set_parameters', 'set_parameters_atomically')
+
+#: what the recorder records by default (bags.storage.DEFAULT_TOPICS), and so what a bag played holds
+RECORDED = (STATES_TOPIC, GRAPH_TOPIC, COMMANDS_TOPIC, EPISODE_TOPIC, OVERRIDES_TOPIC, OPTIONS_TOPIC, CLOCK_TOPIC,
+            '/parameter_events', MARKERS_TOPIC)
+#: processes started by hand, outside ``plan()``: the bag player, and a terminal's ROS 2 tools
+#: (`ros2 param`, `ros2 topic echo`; their node's name is their own, ``OPERATOR`` stands for it)
+PLAYER, OPERATOR = 'player', 'operator'
+
+#: node -> its topics, for every node of NODES and the processes started by hand (docs/nodes.md's table)
+ENDPOINTS: dict[str, Endpoints] = {
+    'recorder': Endpoints(publishes=(DIAGNOSTICS_TOPIC,), subscribes=RECORDED),
+    'graph_builder': Endpoints(publishes=(GRAPH_TOPIC, DIAGNOSTICS_TOPIC), subscribes=(EPISODE_TOPIC, STATES_TOPIC)),
+    # composed: the graph builder hands it the episode's start, the checked states and the graph in the process
+    'decision_node': Endpoints(publishes=(COMMANDS_TOPIC, OVERRIDES_TOPIC, OPTIONS_TOPIC, DIAGNOSTICS_TOPIC)),
+    'visualizer': Endpoints(publishes=(MARKERS_TOPIC, DIAGNOSTICS_TOPIC),
+                            subscribes=(EPISODE_TOPIC, STATES_TOPIC, COMMANDS_TOPIC, GRAPH_TOPIC, OVERRIDES_TOPIC,
+                                        OPTIONS_TOPIC, DIAGNOSTICS_TOPIC)),
+    BRIDGE: Endpoints(publishes=(CLOCK_TOPIC, STATES_TOPIC, EPISODE_TOPIC, DIAGNOSTICS_TOPIC),
+                      subscribes=(COMMANDS_TOPIC,)),
+    # a bag's topics, as recorded, and the episode starts it makes for a bag without them
+    PLAYER: Endpoints(publishes=RECORDED),
+    # reads every topic of the stack, publishes none; sets and gets the nodes' parameters
+    OPERATOR: Endpoints(subscribes=(*RECORDED, DIAGNOSTICS_TOPIC),
+                        calls=tuple(f'/{node}/{service}' for node in ('recorder', 'graph_builder', 'decision_node',
+                                                                      'visualizer', BRIDGE, PLAYER)
+                                    for service in PARAMETER_SERVICES)),
+}
+
+
+def enclave(process: str) -> str:
+    """The SROS2 enclave a process of the stack (an executable, or PLAYER, OPERATOR) runs in: one
+    per process, for every node it holds (config/sros2/policy.xml)."""
+    return f'/exit_decision/{process}'
+
+
+#: enclave -> the nodes it holds: the plan's processes, the player and the operator's tools
+ENCLAVES: dict[str, tuple[str, ...]] = {**{enclave(node.executable): node.node_names for node in NODES},
+                                        enclave(PLAYER): (PLAYER,), enclave(OPERATOR): (OPERATOR,)}
+
 
 _BOOLEANS = {'true': True, 'false': False, '1': True, '0': False}
 
