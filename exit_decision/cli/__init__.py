@@ -18,9 +18,49 @@ from exit_decision.errors import PolicyError, StackError, UsageError
 GROUPS = (evaluation, training, stack, bags, experiments, results, benchmarks)
 
 
+#: exit-decision --help's first lines (plain text: argparse prints it as written)
+DESCRIPTION = ('Graph RL highway-exit decisions for CAVs (SUMO + ROS 2): the project\'s jobs, one command each.\n'
+               '"exit-decision <command> --help" gives a command\'s options and their defaults; docs/cli.md has '
+               'them all.')
+
+#: exit-decision --help's examples
+EXAMPLES = '''examples:
+  # the main job (scripts/main): the ROS 2 stack drives an episode, switches AGGP to CONP, records a bag
+  exit-decision stack
+  # that bag's episodes: a time-space diagram and a bird's-eye clip (its path is the last line stack prints)
+  exit-decision show bags/exit_decision_<time>
+  # episodes without ROS and without a policy: the metrics table
+  exit-decision run --episodes 3
+  # the shipped policy against the neutral rule-based driver on 10 test seeds, under the validation modes
+  exit-decision evaluate --policy policies/mdgqn_options_conditioned/policy.pt --driver rule_based --episodes 10
+'''
+
+
+def package_version() -> str:
+    """The package's version: package.xml's where this code is a checkout (what runs is the
+    checkout's), else the installed distribution's (pip or colcon), else "unknown"."""
+    from pathlib import Path
+    from xml.etree import ElementTree
+
+    manifest = Path(__file__).resolve().parents[2] / 'package.xml'
+    try:
+        root = ElementTree.parse(manifest).getroot()
+        if root.findtext('name') == 'exit_decision' and root.findtext('version'):
+            return root.findtext('version').strip()
+    except (OSError, ElementTree.ParseError):
+        pass
+    from importlib import metadata
+    try:
+        return metadata.version('exit_decision')
+    except metadata.PackageNotFoundError:
+        return 'unknown'
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog='exit-decision', description=__doc__.partition('\n')[0])
-    commands = parser.add_subparsers(dest='command', required=True)
+    parser = Parser(prog='exit-decision', description=DESCRIPTION, epilog=EXAMPLES)
+    parser.add_argument('--version', action='version', version=f'%(prog)s {package_version()}',
+                        help='print the version and exit')
+    commands = parser.add_subparsers(dest='command', required=True, title='commands', metavar='<command>')
     for group in GROUPS:
         group.add_commands(commands)
     return parser

@@ -12,9 +12,39 @@ from exit_decision.config import ConfigError
 from exit_decision.errors import UsageError
 
 
+def shown_default(default) -> str:
+    """A default as --help shows it: a path as typed, a list as its items, "" quoted."""
+    if isinstance(default, (list, tuple)):
+        return ' '.join(shown_default(item) for item in default)
+    return '""' if default == '' else str(default)
+
+
+def has_default(action: argparse.Action) -> bool:
+    """Whether --help shows ``action``'s default by itself: an option or optional positional
+    with a value (not None, not [], not a flag's False), whose help does not say it already."""
+    return (action.default is not None and action.default is not argparse.SUPPRESS and action.default != []
+            and action.nargs != 0 and not action.required and '%(default)' not in (action.help or ''))
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """argparse's help, descriptions and epilogs as written (the examples keep their lines), and
+    every option's default after its help: "(default: 50)". A default that is None or [] is
+    said in the help's own words ("default: ...")."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ''
+        if text is argparse.SUPPRESS or not has_default(action):
+            return text
+        return text + ' (default: ' + shown_default(action.default).replace('%', '%%') + ')'
+
+
 class Parser(argparse.ArgumentParser):
     """argparse's parser, its usage errors in one line (argument, value, what is allowed) and
-    exit code 2; the usage is in --help."""
+    exit code 2; the usage is in --help, with the defaults (HelpFormatter; the subcommands'
+    parsers are Parsers too)."""
+
+    def __init__(self, *args, formatter_class=HelpFormatter, **kwargs):
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
 
     def error(self, message: str):
         self.exit(2, f'{self.prog}: error: {message}\n')
@@ -76,10 +106,11 @@ def config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--config-dir', type=existing('dir'), default=None,
                         help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     parser.add_argument('--scenario-override', type=existing('file'), default=None,
-                        help='YAML merged over scenario.yaml (a scenario variant)')
+                        help='YAML merged over scenario.yaml (a scenario variant; default: none, scenario.yaml '
+                             'as it is)')
     parser.add_argument('--override', type=existing('file'), action='append', default=[],
                         help='YAML keyed by config file (env:, graph:, training:, ...) merged over the '
-                             'config (repeatable)')
+                             'config (repeatable; default: none)')
 
 
 class OptionError(UsageError):

@@ -69,12 +69,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``replay``, ``fixture record``, ``bag repair`` and ``show``."""
     replay = commands.add_parser('replay', help='re-run the policy on a bag and compare with its commands')
     config_options(replay)
-    replay.add_argument('bag', type=Path)
+    replay.add_argument('bag', type=Path, help='a bag directory written by the recorder (exit-decision stack)')
     replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
     replay.add_argument('--algorithm', default=None,
                         help='replay with this learned method\'s policies in --policy-dir (default: the recorded one)')
-    replay.add_argument('--policy', type=checkpoint, default=None, help='a policy.pt to replay with instead')
-    replay.add_argument('--policy-dir', type=existing('dir'), default=None)
+    replay.add_argument('--policy', type=checkpoint, default=None,
+                        help='a policy.pt to replay with instead (default: the policies of --algorithm in --policy-dir)')
+    replay.add_argument('--policy-dir', type=existing('dir'), default=None,
+                        help='directory of the policies, <algorithm>[_<mode>]/policy.pt (default: the shipped '
+                             'policies/)')
     replay.add_argument('--rebuild-graph', action='store_true',
                         help='decide on graphs the graph builder makes again from the recorded states (a change '
                              'to the graph module shows too; a bag recorded without the graph topic needs it)')
@@ -101,12 +104,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     show.add_argument('bag', type=Path, help='a bag directory written by the recorder (exit-decision stack)')
     show.add_argument('--out', type=Path, default=None, help='output directory (default: <BAG>_show beside the bag)')
     show.add_argument('--config-dir', type=existing('dir'), default=None,
-                      help='the config the bag was recorded with (the road)')
+                      help='the config the bag was recorded with (the road; default: config/)')
     show.add_argument('--episode', type=number(int, 0), default=None, help='only this episode (default: every one)')
-    show.add_argument('--start', type=number(float, 0), default=None, help='[s] simulation time the window starts at')
-    show.add_argument('--end', type=number(float, 0), default=None, help='[s] simulation time the window ends at')
+    show.add_argument('--start', type=number(float, 0), default=None,
+                      help='[s] simulation time the window starts at (default: the episode\'s start)')
+    show.add_argument('--end', type=number(float, 0), default=None,
+                      help='[s] simulation time the window ends at (default: the episode\'s end)')
     show.add_argument('--speed', type=number(float, 0, inclusive=False), default=5.0,
-                      help='clip speed, times real time (default 5)')
+                      help='clip speed, times real time')
     show.add_argument('--fps', type=number(float, 0, inclusive=False), default=10.0,
-                      help='clip frames per second (default 10)')
+                      help='clip frames per second')
     show.set_defaults(func=cmd_show)

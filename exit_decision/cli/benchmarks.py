@@ -33,11 +33,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     bench = commands.add_parser('bench', help='print throughput figures (simulation: libsumo vs TraCI; learning; '
                                               'the compare sweep with 1 and every local worker; ROS)')
     config_options(bench)
-    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'sweep', 'ros', 'all'], default='all')
+    bench.add_argument('what', nargs='?', choices=['sim', 'learning', 'sweep', 'ros', 'all'], default='all',
+                       help='what to measure: sim (libsumo vs TraCI), learning (steps per second, an update, a '
+                            'decision), sweep (compare with 1 and every worker), ros (the stack), all (each in turn)')
     bench.add_argument('--steps', type=COUNT, default=1000, help='ros: synchronous steps to measure')
-    bench.add_argument('--policy-dir', type=existing('dir'), default=None, help='ros: default the shipped policies/')
+    bench.add_argument('--policy-dir', type=existing('dir'), default=None, help='ros: directory of the policies (default: the shipped policies/)')
     bench.add_argument('--episodes', type=COUNT, default=2, help='episodes per measurement (sweep: seeds per cell)')
-    bench.add_argument('--seed', type=SEED, default=0)
+    bench.add_argument('--seed', type=SEED, default=0, help='the first seed')
     thread_priority_option(bench, 'ros: the benchmark\'s observer too, once the nodes are started; ')
     cpu_split_option(bench, 'ros: ')
     bench.set_defaults(func=cmd_bench)

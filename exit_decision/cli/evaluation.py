@@ -99,38 +99,53 @@ def reference_driver(text: str) -> str:
     raise argparse.ArgumentTypeError(f'{text!r}: expected sumo, rule_based or rule_based:<driver of reward_sanity.yaml>')
 
 
+#: evaluate --help's examples
+EVALUATE_EXAMPLES = '''examples:
+  # the shipped policy against the neutral rule-based driver and SUMO's drivers, 20 test seeds, under CONP
+  exit-decision evaluate --policy policies/mdgqn_options_conditioned/policy.pt --driver rule_based --driver sumo --mode CONP --episodes 20 --out runs/evaluation_conp
+  # the reference drivers alone under the validation modes, and each run's first 2 episodes drawn into runs/evaluation/show/
+  exit-decision evaluate --driver rule_based --driver sumo --episodes 10 --show 2
+  # the grid's conditioned MDGQN under the paper's four modes, 100 test seeds
+  exit-decision evaluate --policy policies/mdgqn_conditioned/policy.pt --driver rule_based --mode AGGI --mode AGGP --mode CONI --mode CONP --episodes 100 --out runs/evaluation
+'''
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``run`` and ``evaluate``."""
     run = commands.add_parser('run', help='run episodes of the scenario and print the metrics table')
     config_options(run)
-    run.add_argument('--episodes', type=COUNT, default=1)
-    run.add_argument('--seed', type=SEED, default=0, help='seed of the first episode (then +1 each)')
+    run.add_argument('--episodes', type=COUNT, default=1, help='number of episodes')
+    run.add_argument('--seed', type=SEED, default=0, help='seed of the first episode, then +1 each')
     run.add_argument('--driver', choices=['sumo', 'hold'], default='sumo',
                      help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to the target exit (the '
                           'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
                           'every CAV holding lane and speed (shows that collisions are real)')
-    run.add_argument('--mode', default=None, help='decision mode for the reward (default: env.yaml)')
-    run.add_argument('--variant', default=None, help='a cell of config/variants.yaml (e.g. density_1.45)')
-    run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here')
+    run.add_argument('--mode', default=None, help='decision mode whose reward is reported (default: env.yaml\'s)')
+    run.add_argument('--variant', default=None,
+                     help='a cell of config/variants.yaml (e.g. density_1.45) instead of the base scenario; not with '
+                          '--scenario-override (default: the base scenario)')
+    run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here (default: not written)')
     run.add_argument('--markdown', type=Path, default=None,
-                     help='write the table with the command and the full configuration here')
+                     help='write the table with the command and the full configuration here (default: not written)')
     run.set_defaults(func=cmd_run)
 
-    evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds')
+    evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds',
+                                   epilog=EVALUATE_EXAMPLES)
     config_options(evaluate)
-    evaluate.add_argument('--policy', type=checkpoint, action='append', default=[], help='a policy.pt (repeatable)')
+    evaluate.add_argument('--policy', type=checkpoint, action='append', default=[], help='a policy.pt, grid or options (repeatable; default: none; give --policy, --driver or both)')
     evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
                           help='a reference driver (repeatable): sumo (SUMO\'s own drivers), rule_based '
                                '(the neutral teacher, env.yaml\'s rule_based) or rule_based:<name> (a driver '
-                               'of config/reward_sanity.yaml)')
+                               'of config/reward_sanity.yaml); default: none')
     evaluate.add_argument('--mode', action='append', default=[],
                           help='score (and run a conditioned policy) under this mode (repeatable; default: '
                                'training.yaml conditioning.validation_modes); one CSV per run and mode')
-    evaluate.add_argument('--episodes', type=COUNT, default=50)
+    evaluate.add_argument('--episodes', type=COUNT, default=50, help='test seeds: episodes per run')
     evaluate.add_argument('--seed', type=SEED, default=TEST_SEED, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),
                           help='directory for the CSV and Markdown tables')
     evaluate.add_argument('--show', type=number(int, 0), default=0, metavar='N',
                           help='draw the first N episodes of each run into --out/show/: time-space diagram (PNG) '
-                               'and bird\'s-eye clip (GIF; MP4 too where ffmpeg exists)')
+                               'and bird\'s-eye clip (GIF; MP4 too where ffmpeg exists); 0: none; grid policies '
+                               'and the drivers only')
     evaluate.set_defaults(func=cmd_evaluate)

@@ -156,15 +156,18 @@ def comparison_method(text: str) -> str:
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``ablation``, ``reward-sanity``, ``options-table``, ``tradeoff`` and ``compare``."""
     ablation = commands.add_parser('ablation', help='train + evaluate each step of config/ablation.yaml')
-    ablation.add_argument('--config-dir', type=existing('dir'), default=None)
+    ablation.add_argument('--config-dir', type=existing('dir'), default=None,
+                          help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     ablation.add_argument('--algorithm', default='mdgqn', help='a method of config/training.yaml')
     ablation.add_argument('--mode', default=None, help='decision mode (default: env.yaml\'s mode)')
     ablation.add_argument('--episodes', type=COUNT, default=40, help='training episodes per step')
-    ablation.add_argument('--test-episodes', type=COUNT, default=10)
-    ablation.add_argument('--seed', type=SEED, default=0)
-    ablation.add_argument('--test-seed', type=SEED, default=TEST_SEED)
-    ablation.add_argument('--only', type=STEP, nargs='*', default=None, help='step indices to run')
-    ablation.add_argument('--out', type=Path, default=Path('runs/ablation'))
+    ablation.add_argument('--test-episodes', type=COUNT, default=10, help='test episodes per step')
+    ablation.add_argument('--seed', type=SEED, default=0, help='training seed')
+    ablation.add_argument('--test-seed', type=SEED, default=TEST_SEED, help='the first test seed')
+    ablation.add_argument('--only', type=STEP, nargs='*', default=None,
+                          help='step indices to run, their places in config/ablation.yaml (several may follow; '
+                               'default: every step)')
+    ablation.add_argument('--out', type=Path, default=Path('runs/ablation'), help='where the runs go')
     ablation.set_defaults(func=cmd_ablation)
 
     sanity = commands.add_parser('reward-sanity', help='score a sweep of rule-based drivers under every mode')
@@ -172,11 +175,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     sanity.add_argument('--sweep', type=existing('file'), default=None,
                         help='drivers (default: config/reward_sanity.yaml)')
     sanity.add_argument('--variant', action='append', default=[],
-                        help='reward variant to score under (repeatable; default: env.yaml\'s)')
+                        help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)')
     sanity.add_argument('--episodes', type=COUNT, default=30, help='paired seeds per driver')
     sanity.add_argument('--seed', type=SEED, default=SANITY_SEED, help='first seed (not a test or training seed)')
     sanity.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
-    sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'))
+    sanity.add_argument('--out', type=Path, default=Path('docs/results/reward_sanity'),
+                        help='where reward_sanity.md and episodes.csv go')
     sanity.add_argument('--low-level', choices=['grid', 'options'], default='grid',
                         help='the drivers on the action grid, or off it with the options\' low level '
                              '(env.yaml options.low_level)')
@@ -189,22 +193,26 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     config_options(options)
     options.add_argument('--episodes', type=COUNT, default=50, help='paired seeds per run')
     options.add_argument('--seed', type=SEED, default=VALIDATION_SEED,
-                         help='first seed (default: the validation seeds; 10000: the test seeds)')
+                         help='first seed (900000: the validation seeds; 10000: the test seeds)')
     options.add_argument('--variant', action='append', default=[],
-                         help='reward variant to score under (repeatable; default: env.yaml\'s)')
+                         help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)')
     options.add_argument('--policy', type=checkpoint, action='append', default=[],
                          help='a policy.pt (grid or options; repeatable) to judge against the best fixed driver of '
-                              'each mode and SUMO\'s drivers on the same seeds; named by its run directory')
+                              'each mode and SUMO\'s drivers on the same seeds; named by its run directory '
+                              '(default: none, the fixed drivers only)')
     options.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
-    options.add_argument('--out', type=Path, default=Path('docs/results/options'))
+    options.add_argument('--out', type=Path, default=Path('docs/results/options'),
+                         help='where constant_options.md and constant_options.csv go')
     options.set_defaults(func=cmd_options_table)
 
     tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
     config_options(tradeoff)
-    tradeoff.add_argument('--policy', type=checkpoint, default=policy_path(Path('policies'), DEFAULT_ALGORITHM))
+    tradeoff.add_argument('--policy', type=checkpoint, default=policy_path(Path('policies'), DEFAULT_ALGORITHM),
+                          help='a mode-conditioned policy.pt (grid or options)')
     tradeoff.add_argument('--episodes', type=COUNT, default=20, help='seeds per weight point')
     tradeoff.add_argument('--seed', type=SEED, default=40_000, help='first seed (not a test or training seed)')
-    tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'))
+    tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'),
+                          help='where tradeoff.csv and tradeoff.png go')
     tradeoff.add_argument('--plot-only', action='store_true',
                           help='only draw tradeoff.png again from --out\'s tradeoff.csv (no simulation, no checkpoint '
                                'read; --policy and --episodes name them in the title)')
@@ -212,19 +220,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
     compare = commands.add_parser('compare', help='every method on every scenario variant (config/variants.yaml) on '
                                                   'the same seeds, as Ray tasks; a CSV per cell, reruns skip done cells')
-    compare.add_argument('--config-dir', type=existing('dir'), default=None)
+    compare.add_argument('--config-dir', type=existing('dir'), default=None,
+                         help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     compare.add_argument('--override', type=existing('file'), action='append', default=[],
-                         help='YAML keyed by config file merged over the config of every variant (repeatable)')
-    compare.add_argument('--variants', type=existing('file'), default=None, help='default: <config dir>/variants.yaml')
-    compare.add_argument('--variant', action='append', default=[], help='only this cell of the file (repeatable)')
+                         help='YAML keyed by config file merged over the config of every variant (repeatable; '
+                              'default: none)')
+    compare.add_argument('--variants', type=existing('file'), default=None,
+                         help='the scenario variants (default: <config dir>/variants.yaml)')
+    compare.add_argument('--variant', action='append', default=[],
+                         help='only this cell of the file (repeatable; default: every cell)')
     compare.add_argument('--method', type=comparison_method, action='append', default=[],
                          help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
                               f'policies/{GRID_ALGORITHM}/policy.pt unless --train is given)')
     compare.add_argument('--train', action='append', default=[],
                          help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
-                              'scenario, with the seeds and budget of --training; finished runs are reused')
+                              'scenario, with the seeds and budget of --training; finished runs are reused '
+                              '(default: none)')
     compare.add_argument('--training', type=existing('file'), default=None,
-                         help='default: <config dir>/comparison.yaml')
+                         help='the training seeds and budget of --train (default: <config dir>/comparison.yaml)')
     compare.add_argument('--policies', type=Path, default=Path('policies/comparison'),
                          help='where each --train run trains and keeps its policy.pt (<policies>/<method>_s<seed>/, '
                               'beside its config.json and timing.json), reused when done with the same settings; '
@@ -234,12 +247,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                          help='only write the page from the CSVs and training logs in --out (no training, no '
                               'simulation, no checkpoint of a --train run read)')
     compare.add_argument('--report', type=Path, default=None,
-                         help='the comparison page (figures beside it; default <out>/comparison.md)')
+                         help='the comparison page (figures beside it; default: <out>/comparison.md)')
     compare.add_argument('--mode', action='append', default=[],
                          help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
     compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')
     compare.add_argument('--seed', type=SEED, default=TEST_SEED, help='first test seed (never used in training)')
-    compare.add_argument('--out', type=Path, default=Path('runs/compare'))
+    compare.add_argument('--out', type=Path, default=Path('runs/compare'),
+                         help='where the CSVs go, one per cell (<out>/<variant>/<run>_<mode>.csv)')
     compare.add_argument('--address', default=None,
                          help='a Ray cluster to run on (its nodes need this package, SUMO and the policy files); '
                               'default: a local Ray on loopback')

@@ -40,21 +40,28 @@ def cmd_report(args: argparse.Namespace) -> int:
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``plot`` and ``report``."""
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
-    plot.add_argument('--runs', type=existing('dir'), nargs='*', default=[], help='training run directories')
-    plot.add_argument('--evaluation', type=existing('dir'), default=None, help='an evaluate --out directory')
-    plot.add_argument('--out', type=Path, default=Path('docs/figures'))
+    plot.add_argument('--runs', type=existing('dir'), nargs='*', default=[],
+                      help='training run directories (several may follow; default: none)')
+    plot.add_argument('--evaluation', type=existing('dir'), default=None,
+                      help='an evaluate --out directory (default: none)')
+    plot.add_argument('--out', type=Path, default=Path('docs/figures'), help='where the figures go')
     plot.set_defaults(func=cmd_plot)
 
     report = commands.add_parser('report', help='write docs/results.md from the generated results')
-    report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'))
-    report.add_argument('--config-dir', type=existing('dir'), default=None)
+    report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'),
+                        help='an evaluate --out directory (commands.txt and benchmarks.txt beside it)')
+    report.add_argument('--config-dir', type=existing('dir'), default=None,
+                        help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies') / DEFAULT_ALGORITHM],
-                        help='training run directories (validation history, wall time)')
+                        help='training run directories (validation history, wall time; several may follow)')
     report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity_headway'),
-                        help='a reward-sanity --out directory (default: the sweep of the frozen reward, headway)')
-    report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'))
-    report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'))
-    report.add_argument('--out', type=Path, default=Path('docs/results.md'))
+                        help='a reward-sanity --out directory; the default holds the sweep under the frozen reward\'s '
+                             'variant, headway')
+    report.add_argument('--tradeoff', type=existing('dir'), default=Path('docs/results/tradeoff'),
+                        help='a tradeoff --out directory')
+    report.add_argument('--figures', type=existing('dir'), default=Path('docs/figures'),
+                        help='the figures (a plot --out directory)')
+    report.add_argument('--out', type=Path, default=Path('docs/results.md'), help='the results page to write')
     report.add_argument('--options-table', type=existing('dir'), default=Path('docs/results/options/test_seeds'),
                         help='an options-table --out directory of the test seeds, with --policy: the README\'s table')
     report.add_argument('--readme', type=existing('file'), default=Path('README.md'),

@@ -99,35 +99,53 @@ def cmd_stack(args: argparse.Namespace) -> int:
     return 0 if run.episodes else 1
 
 
+#: stack --help's examples
+STACK_EXAMPLES = '''examples:
+  # the main job (scripts/main): the shipped policy, AGGP switched to CONP at step 300, seed 10000, a bag in bags/
+  exit-decision stack
+  # another start mode, switch and seed, into a bag of a chosen name; then its diagrams and clip
+  exit-decision stack --mode CONI --switch-to AGGI --switch-at 200 --seed 10001 --bag bags/coni_to_aggi
+  exit-decision show bags/coni_to_aggi
+  # no switch, no visualizer, episodes until Ctrl-C
+  exit-decision stack --switch-to "" --no-visualizer --episodes 0
+  # the conditioned MDGQN on the 81-action grid instead
+  exit-decision stack --algorithm mdgqn_conditioned
+'''
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``stack``."""
     from exit_decision.ros.stack.node_table import ARGUMENTS as STACK_ARGUMENTS   # rclpy-free, as this parser
 
     stack = commands.add_parser('stack', help='run the ROS 2 stack (bridge, graph builder, decision node, '
-                                              'recorder) for an episode, with a mode switch')
-    stack.add_argument('--config-dir', type=existing('dir'), default=None)
+                                              'recorder) for an episode, with a mode switch',
+                                   epilog=STACK_EXAMPLES)
+    stack.add_argument('--config-dir', type=existing('dir'), default=None,
+                       help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     stack.add_argument('--mode', default=None,
                        help='decision mode at start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-to', default=None,
                        help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
                             'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=STEP, default=300,
-                       help='step of the first episode to switch at (below the scenario\'s max_steps)')
+                       help='step of the first episode to switch at, below the scenario\'s max_steps')
     stack.add_argument('--algorithm', default=DEFAULT_ALGORITHM,
                        help='a learned method of config/training.yaml (<method>[_options][_conditioned]: over options; '
                             f'one network for every mode); shipped: {", ".join(SHIPPED_ALGORITHMS)} (others: '
                             '--policy-dir with <algorithm>_<mode>/policy.pt)')
     stack.add_argument('--episodes', type=number(int, 0), default=1,
-                       help='episodes to run (default 1); 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
+                       help='episodes to run; 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
                             'finish the bag)')
-    stack.add_argument('--seed', type=SEED, default=TEST_SEED)
+    stack.add_argument('--seed', type=SEED, default=TEST_SEED, help='seed of the first episode, then +1 each')
     stack.add_argument('--bag', type=new_path, default=None,
-                       help='bag directory, a new one (default bags/exit_decision_<time>)')
+                       help='bag directory, a new one (default: bags/exit_decision_<time>)')
     stack.add_argument('--compression', choices=STACK_ARGUMENTS['compression'].choices,
                        default=STACK_ARGUMENTS['compression'].default,
-                       help='mcap chunk compression of the bag (default %(default)s; one episode of the shipped '
+                       help='mcap chunk compression of the bag (default: %(default)s; one episode of the shipped '
                             'scenario, 80 s simulated: none 3.55 MB, zstd 0.49 MB)')
-    stack.add_argument('--policy-dir', type=existing('dir'), default=None, help='default: the shipped policies/')
+    stack.add_argument('--policy-dir', type=existing('dir'), default=None,
+                       help='directory of the policies, <algorithm>[_<mode>]/policy.pt (default: the shipped '
+                            'policies/)')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     thread_priority_option(stack)

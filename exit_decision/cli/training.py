@@ -35,9 +35,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+#: train --help's examples
+TRAIN_EXAMPLES = '''examples:
+  # the shipped policy, the MDGQN over options for every mode (as scripts/train_policies trains it)
+  exit-decision train --algorithm mdgqn --mode conditioned --action-space options --override config/overrides/options_no_demonstrations.yaml --seed 2 --episodes 800 --out runs/mdgqn_options_conditioned
+  # a per-mode GQN on the 81-action grid
+  exit-decision train --algorithm gqn --mode CONP --seed 1 --out runs/gqn_CONP_seed1
+  # a short trial of the default (the conditioned MDGQN on the grid: demonstrations, pre-training, RL)
+  exit-decision train --episodes 20 --out runs/trial
+'''
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``train``."""
-    train = commands.add_parser('train', help='train a learned method (GQN, MDGQN, the baselines) for a mode or all')
+    train = commands.add_parser('train', help='train a learned method (GQN, MDGQN, the baselines) for a mode or all',
+                                epilog=TRAIN_EXAMPLES)
     config_options(train)
     train.add_argument('--algorithm', default='mdgqn',
                        help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
@@ -48,11 +60,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     train.add_argument('--episodes', type=COUNT, default=None,
                        help="RL episodes (default: config/training.yaml's episodes; refused when the config's budget "
                             "is environment_steps)")
-    train.add_argument('--seed', type=SEED, default=0)
-    train.add_argument('--out', type=Path, default=None, help='run directory (default runs/<alg>_<mode>_seed<s>)')
-    train.add_argument('--resume', type=checkpoint, default=None, help='a last.pt to continue from')
+    train.add_argument('--seed', type=SEED, default=0, help='training seed (episodes on seeds seed x 1000000 + episode)')
+    train.add_argument('--out', type=Path, default=None,
+                       help='run directory, refused if it holds an earlier run unless --resume (default: '
+                            'runs/<algorithm>[_options]_<mode>_seed<seed>)')
+    train.add_argument('--resume', type=checkpoint, default=None,
+                       help='a last.pt to continue from (default: a new run)')
     train.add_argument('--init', type=checkpoint, default=None,
-                       help='a policy.pt whose network starts the RL phase (no pre-training)')
+                       help='a policy.pt whose network starts the RL phase (no pre-training; default: a new network)')
     train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
     train.add_argument('--action-space', choices=['grid', 'options'], default='grid',
                        help='the 81-action grid (paper 000) or options (config/env.yaml options: a lane intent x a '
