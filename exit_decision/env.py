@@ -59,7 +59,8 @@ class ExitDecisionEnv(gym.Env):
         def reward_of(variant: str):
             return make_reward(config.reward(variant), scenario.step_length, scenario.emergency_braking_threshold,
                                self.sim.geometry.route_lanes)
-        scored = reward_variant or config.env.reward_variant
+        #: the reward variant every metric and the episode's reward vector are scored under
+        self.reward_variant = scored = reward_variant or config.env.reward_variant
         self.reward_fn = reward_of(scored)
         self.learning_reward_fn = self.reward_fn if learning_reward in (None, scored) else reward_of(learning_reward)
         self.mode_weights = self.reward_fn.weights(config.mode(self.mode))

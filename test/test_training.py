@@ -139,6 +139,10 @@ def test_conditioned_training_over_options_and_its_checkpoint(config_dir, tmp_pa
     policy_path = trainer.run(episodes=2, progress=False)
     policy = load_policy(policy_path)
     assert policy.action_space == 'options' and policy.network.shape.num_actions == trainer.env.options.size
+    from exit_decision.driving.prior import PriorTable
+    prior = PriorTable.from_metadata(policy.prior)
+    assert list(prior.vectors) == list(config.env.options.styles) and len(prior.seeds) == config.training.validation.episodes, \
+        'an options policy carries the prior measured on the validation seeds'
     evaluate_runs(config, [policy_path], [], ['AGGI'], episodes=1, seed=10_000, out_dir=tmp_path / 'eval',
                   command='test')
     assert 0.0 <= read_summary(tmp_path / 'eval' / 'summary.csv')['mdgqn_options_conditioned_AGGI']['p_CAV'][0] <= 1.0

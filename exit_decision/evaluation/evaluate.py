@@ -8,9 +8,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from exit_decision.agents.options import OptionSpace
+from exit_decision.driving import fixed
 from exit_decision.driving.episode import play_episode
 from exit_decision.driving.interface import Driver, StepDecision
 from exit_decision.driving.policy import own_mode, policy_driver
+from exit_decision.driving.prior import PriorTable
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
 from exit_decision.model.modes import ModeWeights
@@ -64,6 +67,18 @@ def best_fixed_driver(returns: Mapping[str, Sequence[float]]) -> str:
     """The fixed driver (by name) of highest mean return on the same seeds, the first on a tie:
     the best fixed driver a learned policy over options must beat (validation and the tables)."""
     return max(returns, key=lambda name: float(np.mean(returns[name])))
+
+
+def measure_prior(env: ExitDecisionEnv, seeds: Sequence[int], desc: str | None = None) -> PriorTable:
+    """The prior's table (``driving.prior``): every style of config/env.yaml's options as a
+    constant option on ``seeds``, each style's mean reward vector under ``env``'s scoring variant."""
+    space = OptionSpace(env.config, env.shield, env.planner)
+    vectors = {}
+    for style in env.config.env.options.styles:
+        episodes = play_episodes(env, fixed.constant_option(space, style), seeds,
+                                 desc=desc and f'{desc}: {style}')
+        vectors[style] = np.mean([e['reward_vector'] for e in episodes], axis=0)
+    return PriorTable(env.reward_variant, tuple(seeds), vectors)
 
 
 @dataclass

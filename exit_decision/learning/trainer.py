@@ -181,8 +181,12 @@ class Trainer:
         if demo.pretrain_updates or init is not None:   # a network that learnt already is fine-tuned
             self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
         validation = self.training.validation
-        task = ValidationTask(self.config, self.validation_modes, validation_seeds(validation.episodes),
-                              self.action_space)
+        seeds = validation_seeds(validation.episodes)
+        if self.action_space == 'options':   # the prior every checkpoint carries (driving.prior)
+            from exit_decision.evaluation.evaluate import measure_prior
+            self.checkpoints.description['prior'] = measure_prior(
+                self.env, seeds, desc='the prior' if progress else None).to_metadata()
+        task = ValidationTask(self.config, self.validation_modes, seeds, self.action_space)
         with Validator(task, validation.parallel, self.env) as validator:
             if self.state.episode == 0:
                 validator.submit(self.checkpoints.save_candidate(self.state))   # the pre-trained policy too

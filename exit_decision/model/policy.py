@@ -93,6 +93,12 @@ class GraphPolicy:
                         self.metadata['mode'])
 
     @property
+    def prior(self) -> dict | None:
+        """The prior table a policy over options was trained beside (``driving.prior.PriorTable``'s
+        metadata: each fixed style's mean reward vector on the validation seeds); None before it."""
+        return self.metadata.get('prior')
+
+    @property
     def measures(self) -> bool:
         """Trained with our measures (shield, lane planner, demonstrations); False: a method
         run as published, which drives with only the lanes that exist masked."""

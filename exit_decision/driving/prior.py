@@ -1,0 +1,104 @@
+"""The prior over options (issue 39): the best fixed driver for any mode, from measured data.
+
+``PriorTable`` holds each fixed style's mean reward vector (4 rows x incentive/punishment,
+``exit_decision.reward``) over the validation seeds, under one reward variant, as the constant
+options drove them (``exit-decision options-table``). A mode's return is linear in the vector, so
+the best fixed style for ANY weights (the four modes, Table A1's points, a user's
+``reward_weights``) is an argmax of a dot product, not a per-mode-name table. The table is plain
+data: it travels in a checkpoint's metadata and loads with ``weights_only=True``.
+
+``PriorDriver`` drives it: every CAV holds the constant option of the best style for its mode,
+chosen again when the mode changes.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from exit_decision.agents.options import OptionSpace
+from exit_decision.driving.fixed import OptionDriver
+from exit_decision.driving.interface import StepDecision
+from exit_decision.graph import TrafficGraph
+from exit_decision.model.modes import Mode
+from exit_decision.reward import ROWS, weights_of_input
+from exit_decision.traffic import TrafficSnapshot
+
+#: the reward vector's columns as the tables write them (``experiments.reward_sanity.variant_rows``)
+VECTOR_COLUMNS = tuple(f'{row}_{side}' for row in ROWS for side in ('I', 'P'))
+#: the prefix of a constant option's run in the tables
+OPTION_PREFIX = 'option_'
+
+
+@dataclass(frozen=True)
+class PriorTable:
+    variant: str                      # the reward variant the vectors are scored under
+    seeds: tuple[int, ...]            # the seeds the means are over
+    vectors: Mapping[str, np.ndarray]  # style -> (4, 2) mean reward vector
+
+    def returns(self, weights: np.ndarray) -> dict[str, float]:
+        """Each style's mean return at a weight input (six numbers)."""
+        multipliers = weights_of_input(weights)
+        return {style: float((vector * multipliers).sum()) for style, vector in self.vectors.items()}
+
+    def best_style(self, weights: np.ndarray) -> str:
+        """The style of highest mean return at ``weights`` (the first on a tie, in table order)."""
+        returns = self.returns(weights)
+        return max(returns, key=returns.get)
+
+    def to_metadata(self) -> dict:
+        """Plain data (lists, numbers, strings) for a checkpoint's metadata."""
+        return {'variant': self.variant, 'seeds': list(self.seeds),
+                'vectors': {style: vector.tolist() for style, vector in self.vectors.items()}}
+
+    @classmethod
+    def from_metadata(cls, data: Mapping) -> PriorTable:
+        return cls(data['variant'], tuple(data['seeds']),
+                   {style: np.asarray(vector, dtype=float).reshape(len(ROWS), 2) for style, vector in data['vectors'].items()})
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[Mapping], variant: str, styles: Sequence[str]) -> PriorTable:
+        """From the constant-options table's rows (``constant_options.csv``): each style's mean
+        vector over the seeds its run has under ``variant``; ValueError when a style is missing
+        or the styles are not on the same seeds."""
+        by_style: dict[str, list[Mapping]] = {style: [] for style in styles}
+        for row in rows:
+            style = str(row['run']).removeprefix(OPTION_PREFIX)
+            if row['variant'] == variant and str(row['run']).startswith(OPTION_PREFIX) and style in by_style:
+                by_style[style].append(row)
+        seeds = {style: sorted(int(row['seed']) for row in episodes) for style, episodes in by_style.items()}
+        missing = [style for style, found in seeds.items() if not found]
+        if missing:
+            raise ValueError(f'no episodes of style(s) {", ".join(missing)} under reward variant {variant!r}')
+        first = next(iter(seeds.values()))
+        if any(found != first for found in seeds.values()):
+            raise ValueError('the styles of the table ran on different seeds')
+        vectors = {style: np.array([[np.mean([float(row[f'{r}_{side}']) for row in episodes]) for side in ('I', 'P')]
+                                    for r in ROWS]) for style, episodes in by_style.items()}
+        return cls(variant, tuple(first), vectors)
+
+
+class PriorDriver:
+    """Every CAV holds the constant option of the table's best style for the mode."""
+
+    def __init__(self, table: PriorTable, space: OptionSpace, mode: Mode | None = None, name: str = 'prior'):
+        self.table, self.space, self.name = table, space, name
+        self.style: str | None = None
+        self._index = -1
+        self._driver = OptionDriver(name, space, lambda graph, snapshot: lambda vehicle, mask: self._index)
+        if mode is not None:
+            self.set_mode(mode)
+
+    def set_mode(self, mode: Mode) -> None:
+        self.style = self.table.best_style(mode.weights)
+        self._index = self.space.index('route', self.style)
+        self.reset()
+
+    def reset(self) -> None:
+        self._driver.reset()
+
+    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot, time: float) -> StepDecision:
+        if self.style is None:
+            raise ValueError(f'{self.name}: no mode set (set_mode) before the first decision')
+        return self._driver.decide(graph, snapshot, time)

@@ -1,0 +1,82 @@
+"""The prior over options (issue 39): each fixed style's mean reward vector, from which the best
+fixed style for any weights is a dot product away; it travels in a checkpoint and drives."""
+import numpy as np
+import pytest
+import torch
+
+from exit_decision.driving.prior import VECTOR_COLUMNS, PriorTable
+from exit_decision.model.modes import ModeWeights
+from exit_decision.reward import scalar, weights_of_input
+
+
+def rows_of(style_vectors: dict, seeds=(1, 2), variant='headway'):
+    """constant_options.csv rows: per style and seed its reward vector's columns (the mean is the given one)."""
+    rows = []
+    for style, vector in style_vectors.items():
+        for k, seed in enumerate(seeds):
+            spread = (-1) ** k * 0.5   # seeds differ, the mean stays
+            rows.append({'run': f'option_{style}', 'seed': str(seed), 'variant': variant,
+                         **{column: str(value + spread) for column, value in zip(VECTOR_COLUMNS, np.ravel(vector))}})
+    return rows
+
+
+#: a fast style that earns efficiency and pays safety, a calm one the other way round
+FAST = np.array([[10.0, 0.0], [30.0, -1.0], [3.0, -2.0], [5.0, -8.0]])
+CALM = np.array([[10.0, 0.0], [20.0, 0.0], [4.0, 0.0], [15.0, 0.0]])
+
+
+def test_the_best_style_is_the_argmax_of_a_dot_product_for_any_weights(project_config):
+    rows = rows_of({'fast': FAST, 'calm': CALM}) + rows_of({'fast': FAST}, variant='other')
+    table = PriorTable.from_rows(rows, 'headway', ['fast', 'calm'])
+    np.testing.assert_allclose(table.vectors['fast'], FAST)
+    assert table.seeds == (1, 2) and table.variant == 'headway'
+    modes = ModeWeights(project_config)
+    for name in project_config.modes:
+        weights = modes.mode(name).weights
+        expected = max(('fast', 'calm'), key=lambda s: scalar({'fast': FAST, 'calm': CALM}[s], weights_of_input(weights)))
+        assert table.best_style(weights) == expected
+    efficiency_only = np.array([0.0, 1.0, 0.0, 0.0, 0.5, 0.5])
+    safety_only = np.array([0.0, 0.0, 0.0, 1.0, 0.5, 0.5])
+    assert table.best_style(efficiency_only) == 'fast' and table.best_style(safety_only) == 'calm', \
+        'the prior follows the weights, not a mode name'
+
+
+def test_a_table_with_a_style_missing_or_on_other_seeds_is_refused():
+    with pytest.raises(ValueError, match='calm'):
+        PriorTable.from_rows(rows_of({'fast': FAST}), 'headway', ['fast', 'calm'])
+    with pytest.raises(ValueError, match='different seeds'):
+        PriorTable.from_rows(rows_of({'fast': FAST}) + rows_of({'calm': CALM}, seeds=(1, 3)), 'headway', ['fast', 'calm'])
+
+
+def test_the_table_travels_in_a_checkpoints_metadata_and_loads_with_weights_only(tmp_path):
+    table = PriorTable('headway', (1, 2), {'fast': FAST, 'calm': CALM})
+    torch.save({'metadata': {'prior': table.to_metadata()}}, tmp_path / 'p.pt')
+    loaded = PriorTable.from_metadata(torch.load(tmp_path / 'p.pt', weights_only=True)['metadata']['prior'])
+    assert loaded.variant == 'headway' and loaded.seeds == (1, 2) and list(loaded.vectors) == ['fast', 'calm']
+    np.testing.assert_array_equal(loaded.vectors['calm'], CALM)
+
+
+def test_the_prior_measured_in_the_environment_drives_the_best_style_of_its_mode(tmp_path):
+    from exit_decision.agents.options import OptionSpace
+    from exit_decision.config import load_project
+    from exit_decision.driving.episode import play_episode
+    from exit_decision.driving.prior import PriorDriver
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import measure_prior
+    from ros_helpers import small_config_dir
+
+    config = load_project(small_config_dir(tmp_path / 'config'))
+    env = ExitDecisionEnv(config)
+    try:
+        table = measure_prior(env, [7])
+        assert list(table.vectors) == list(config.env.options.styles) and table.variant == env.reward_variant
+        modes = ModeWeights(config)
+        driver = PriorDriver(table, OptionSpace(config, env.shield, env.planner), modes.mode('AGGI'))
+        assert driver.style == table.best_style(modes.mode('AGGI').weights)
+        held = set()
+        play_episode(env, driver, 7, lambda decision, *_: held.update(o.option.style for o in decision.options.values()))
+        assert held == {driver.style}, 'every CAV holds the best style for the mode'
+        vector = env.episode_log.reward_vector
+        np.testing.assert_allclose(vector, table.vectors[driver.style])   # one seed: the table is that episode
+    finally:
+        env.close()
