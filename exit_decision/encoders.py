@@ -42,6 +42,9 @@ class StateEncoder:
         if name not in ENCODERS:
             raise ValueError(f'unknown state encoder {name!r}; known: {", ".join(ENCODERS)}')
         self.name, self.lane_count, self.speed_limit = name, lane_count, speed_limit
+        #: what makes this encoder again (a checkpoint's metadata keeps it)
+        self.settings = {'name': name, 'graph_features': graph_features, 'lane_count': lane_count,
+                         'speed_limit': speed_limit}
         self.num_features = {'graph': graph_features, 'graph_paper': len(PAPER_FEATURES),
                              'grid': lane_count * GRID_CELLS * 2,
                              'nearest': 1 + NEAREST_COUNT * NEAREST_VALUES}[name]

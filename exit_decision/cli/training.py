@@ -24,13 +24,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.episodes and steps:
         raise UsageError(f'--episodes {args.episodes}: this config\'s budget for {args.algorithm} is environment_steps: '
                          f'{steps}; give one budget (drop --episodes, or set environment_steps to null with --override)')
+    if args.address:
+        if not args.actors:
+            raise UsageError(f'--address {args.address}: only with --actors N (N >= 1)')
+        from exit_decision.learning.actors import check_address
+        check_address(args.address)   # now, not after the demonstrations
     run = run_name(algorithm_name(args.algorithm, args.action_space, False), args.mode)   # grid and options apart
     out_dir = args.out or Path('runs') / f'{run}_seed{args.seed}'
     if args.reward_variant:
         known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
     trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir, args.action_space)
-    policy = trainer.run(episodes, resume=args.resume, init=args.init)
+    policy = trainer.run(episodes, resume=args.resume, init=args.init, actors=args.actors, address=args.address)
+    if args.actors:
+        counts = trainer.actor_counts
+        print(f'{args.actors} actors: {counts.restarts} episode(s) given again after an actor died, '
+              f'{len(counts.dropped)} actor(s) dropped past actors.max_restarts')
     print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
     return 0
 
@@ -72,4 +81,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     train.add_argument('--action-space', choices=['grid', 'options'], default='grid',
                        help='the 81-action grid (paper 000) or options (config/env.yaml options: a lane intent x a '
                             'driving style, held until it ends, executed by the rule-based low level)')
+    train.add_argument('--actors', type=COUNT, default=0,
+                       help='collect the RL episodes on this many Ray actors, one simulation each, and learn here '
+                            '(config/training.yaml actors; 0: collect in this process)')
+    train.add_argument('--address', default=None,
+                       help='with --actors: a running Ray cluster, host:port of its head (default: a local Ray on '
+                            'loopback)')
     train.set_defaults(func=cmd_train)

@@ -476,6 +476,13 @@ class ValidationConfig(Strict):
     parallel: bool
 
 
+class ActorsConfig(Strict):
+    """``train --actors N``: collection on Ray actors, one learner (``learning/actors.py``)."""
+    broadcast_every: PositiveInt = 50    # the learner sends its weights to the actors every this many updates
+    epsilon_spread: NonNegativeFloat = 1.0   # actor i of N explores at epsilon^(1 + spread * i / (N - 1)) (Ape-X)
+    max_restarts: Count = 3              # an actor whose process dies is restarted this often, then dropped
+
+
 class ConditioningConfig(Strict):
     modes: list[str]
     exact_share: Probability
@@ -502,6 +509,7 @@ class TrainingConfig(Strict):
     credit: Literal['own', 'global']
     conditioning: ConditioningConfig
     methods: dict[str, MethodConfig]
+    actors: ActorsConfig = ActorsConfig()
 
     @property
     def method_names(self) -> list[str]:

@@ -37,6 +37,7 @@ from tqdm import tqdm
 from exit_decision.actions import ActionGrid
 from exit_decision.config import ConfigError, ProjectConfig, TrainingConfig, deep_merge, load_yaml, parse
 from exit_decision.errors import UsageError
+from exit_decision.learning.actors import start_ray
 from exit_decision.evaluation.evaluate import EvaluatedRun, evaluate_policy
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, driver_runs, write_run
 from exit_decision.model.names import GRID_ALGORITHM, default_policy_dir, policy_path
@@ -131,24 +132,6 @@ class SweepResult:
         line = (f'{self.cells} {self.unit}: {self.done} run now, {self.skipped} already done (skipped), '
                 f'{len(self.failed)} failed')
         return '\n'.join([line] + [f'  failed: {name}: {error}' for name, error in self.failed.items()])
-
-
-def start_ray(address: str | None, workers: int, package_root: Path) -> None:
-    """Connect to a Ray cluster at ``address``, or start a local one of ``workers`` CPUs that
-    listens on loopback only (no dashboard, no usage report)."""
-    if address is None:
-        # read by ray at import: a single-node Ray whose servers bind 127.0.0.1 (with _node_ip_address)
-        os.environ['RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER'] = '0'
-        os.environ['RAY_USAGE_STATS_ENABLED'] = '0'
-    import ray
-
-    if address is None:
-        # workers import this same copy of the package (a source tree before its install)
-        path = os.pathsep.join(filter(None, [str(package_root), os.environ.get('PYTHONPATH', '')]))
-        ray.init(address=None, num_cpus=workers, include_dashboard=False, log_to_driver=False,
-                 _node_ip_address='127.0.0.1', runtime_env={'env_vars': {'PYTHONPATH': path}})
-    else:
-        ray.init(address=address, log_to_driver=False)
 
 
 def _error_text(error: Exception) -> str:

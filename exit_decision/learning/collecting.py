@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 
 from exit_decision.actions import NO_ACTION
-from exit_decision.config import ExplorationConfig
+from exit_decision.config import ActionSpaceName, ExplorationConfig, ProjectConfig
 from exit_decision.driving.fixed import GridDriver, constant_option
 from exit_decision.driving.interface import Driver, StepDecision
 from exit_decision.driving.episode import play_episode
@@ -60,6 +60,21 @@ class LearningQ:
 
     def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot, network_weights: np.ndarray | None) -> np.ndarray:
         return q_values(self.network, self.encoded(graph, snapshot), network_weights)
+
+
+def method_collector(config: ProjectConfig, algorithm: str, env_mode: str, action_space: ActionSpaceName,
+                     rng: np.random.Generator) -> Collector:
+    """A training run's environment and collector for ``algorithm`` (one per process: the
+    trainer's, and each Ray actor's): the method's encoder, reward and agents (SGRL trains one
+    CAV at a time); as published, the bare shield and no planner (the env's serve the teacher)."""
+    method, training = config.training.method(algorithm), config.training.of_method(algorithm)
+    env = ExitDecisionEnv(config, mode=env_mode, single_agent=method.single_agent,
+                          learning_reward=method.reward_variant, action_space=action_space)
+    road = config.scenario.road
+    encoder = StateEncoder(method.encoder, env.graph_builder.num_features, road.lane_count, road.highway_speed_limit)
+    return Collector(env, encoder, env.shield if method.measures else env.shield.bare(),
+                     env.planner if method.measures else None, training.exploration, method.multi_step,
+                     training.gamma, rng)
 
 
 class Collector:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +34,9 @@ import torch
 from tqdm import tqdm
 
 from exit_decision.config import ActionSpaceName, ProjectConfig
-from exit_decision.encoders import StateEncoder
-from exit_decision.env import ExitDecisionEnv
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.checkpoints import Checkpoints, TrainingState, run_description
-from exit_decision.learning.collecting import Collector
+from exit_decision.learning.collecting import method_collector
 from exit_decision.learning.sampling import Experience, WeightSampler
 from exit_decision.learning.validation import ValidationTask, Validator, record_validation, validation_seeds
 from exit_decision.model.modes import Mode, ModeWeights
@@ -76,16 +75,14 @@ class Trainer:
         self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
         # SGRL trains one CAV at a time (the others drive as humans); validation runs every CAV
         self.action_space = action_space
-        self.env = env = ExitDecisionEnv(config, mode=self.validation_modes[0], single_agent=method.single_agent,
-                                         learning_reward=method.reward_variant, action_space=action_space)
-        num_actions = env.options.size if env.options is not None else env.actions.size
         self.rng = np.random.default_rng(seed)
+        self.collector = method_collector(config, algorithm, self.validation_modes[0], action_space, self.rng)
+        self.env = env = self.collector.env
+        num_actions = env.options.size if env.options is not None else env.actions.size
         self.sampler = WeightSampler(config, list(c.modes), c.exact_share, c.concentration, self.rng) \
             if self.conditioned else None
-        n, scenario = config.graph.max_vehicles, config.scenario
-        encoder_settings = {'name': method.encoder, 'graph_features': env.graph_builder.num_features,
-                            'lane_count': scenario.road.lane_count, 'speed_limit': scenario.road.highway_speed_limit}
-        encoder = StateEncoder(**encoder_settings)
+        n = config.graph.max_vehicles
+        encoder = self.collector.encoded.encoder
         net = method.network
         self.shape = NetworkShape(encoder.num_features, num_actions, tuple(net.encoder), net.gcn,
                                   tuple(net.head), WEIGHT_INPUT_SIZE if self.conditioned else 0, net.dueling,
@@ -94,12 +91,8 @@ class Trainer:
             method.double, t.learning_rate, t.tau, t.demonstrations.margin, t.gradient_clip), seed)
         self.experience = Experience(t, method.prioritized, n, self.shape.num_features, num_actions, self.sampler,
                                      env.learning_weights, self.rng)
-        # as published: the bare shield and no planner (the env's serve the teacher)
-        self.collector = Collector(env, encoder, env.shield if method.measures else env.shield.bare(),
-                                   env.planner if method.measures else None,
-                                   t.exploration, method.multi_step, t.gamma, self.rng)
         self.checkpoints = Checkpoints(out_dir, run_description(
-            config, algorithm, mode, seed, action_space, encoder_settings, self.validation_modes,
+            config, algorithm, mode, seed, action_space, encoder.settings, self.validation_modes,
             self.shape.num_features), self.agent, self.rng)
         self.state = TrainingState()
 
@@ -154,10 +147,12 @@ class Trainer:
     # --- the whole run ------------------------------------------------------------------------
 
     def run(self, episodes: int, resume: Path | None = None, progress: bool = True,
-            init: Path | None = None) -> Path:
+            init: Path | None = None, actors: int = 0, address: str | None = None) -> Path:
         """Demonstrations, pre-training (skipped when resuming or starting from ``init``'s
         network), then the RL episodes with validation, ``episodes`` of them or, when the config
-        gives ``environment_steps``, as many as that budget takes; returns the kept policy.pt."""
+        gives ``environment_steps``, as many as that budget takes; returns the kept policy.pt.
+        ``actors``: collect the RL episodes on that many Ray actors (``actors``; 0: here), on the
+        cluster at ``address`` (None: a local Ray)."""
         if resume is None and (self.out_dir / 'training.csv').exists():
             raise FileExistsError(f'{self.out_dir} holds an earlier run (training.csv): resume it with '
                                   f'--resume {self.out_dir / "last.pt"}, or choose another --out')
@@ -194,12 +189,19 @@ class Trainer:
             bar = tqdm(total=steps or episodes, initial=self.state.decisions if steps else self.state.episode,
                        desc=f'train {self.algorithm}/{self.mode}', unit='step' if steps else 'ep',
                        disable=not progress)
-            while not self.budget_spent(episodes):
-                before = self.state.decisions
-                metrics = self.train_episode()
-                bar.update(self.state.decisions - before if steps else 1)
-                bar.set_postfix(p_CAV=f'{metrics["p_CAV"]:.2f}', col=f'{metrics["p_collision_CAV"]:.2f}',
-                                best=f'{self.state.best_score:.3g}')
+            source = self.episodes_on_actors(episodes, actors, address) if actors else self.episodes_here(episodes)
+            first, started = (self.state.episode, self.state.decisions, self.state.updates), time.monotonic()
+            for metrics in source:
+                bar.update(self.state.decisions - bar.n if steps else 1)
+                postfix = {'p_CAV': f'{metrics["p_CAV"]:.2f}', 'col': f'{metrics["p_collision_CAV"]:.2f}',
+                           'best': f'{self.state.best_score:.3g}'}
+                if actors:
+                    elapsed = max(time.monotonic() - started, 1e-9)
+                    done = [now - then for now, then in zip((self.state.episode, self.state.decisions,
+                                                             self.state.updates), first)]
+                    postfix.update({'ep/s': f'{done[0] / elapsed:.2f}', 'dec/s/actor': f'{done[1] / elapsed / actors:.0f}',
+                                    'upd/s': f'{done[2] / elapsed:.0f}', 'age': metrics['weights_age']})
+                bar.set_postfix(postfix)
                 self.record(validator.finished())
                 if self.state.episode % validation.every_episodes == 0 or self.budget_spent(episodes):
                     validator.submit(self.checkpoints.save_candidate(self.state))
@@ -220,8 +222,8 @@ class Trainer:
                                                       self.state.best_score)
 
     def train_episode(self) -> dict[str, float]:
-        """One training episode with learning after every decision; one row of training.csv
-        (returned)."""
+        """One training episode in this process, with learning after every decision; one row of
+        training.csv (returned)."""
         epsilon = self.epsilon()
         losses: list[dict[str, float]] = []
 
@@ -232,11 +234,54 @@ class Trainer:
             losses.extend(self.train_steps(self.training.updates_per_decision))
         self.collector.episode(self.seed * EPISODE_SEED_STRIDE + self.state.episode, self.agent.online,
                                self.episode_mode(), epsilon, on_decision=learn)
-        metrics = self.env.episode_log.metrics()
+        return self.finish_episode(epsilon, losses, self.env.episode_log.metrics())
+
+    def finish_episode(self, epsilon: float, losses: list[dict[str, float]], metrics: dict[str, float],
+                       **columns) -> dict[str, float]:
+        """The episode's row of training.csv (returned), and the episode counted."""
         row = {'episode': self.state.episode, 'epsilon': epsilon, 'margin_weight': self.margin_weight(),
                'loss': float(np.mean([x['loss'] for x in losses])) if losses else float('nan'),
                'td_loss': float(np.mean([x['td_loss'] for x in losses])) if losses else float('nan'),
-               'decisions': self.state.decisions, 'updates': self.state.updates, **metrics}
+               'decisions': self.state.decisions, 'updates': self.state.updates, **columns, **metrics}
         append_row(self.out_dir / 'training.csv', row)
         self.state.episode += 1
         return row
+
+    def episodes_here(self, episodes: int) -> Iterator[dict[str, float]]:
+        """Training episodes in this process until the budget is spent: their rows."""
+        while not self.budget_spent(episodes):
+            yield self.train_episode()
+
+    def episodes_on_actors(self, episodes: int, count: int, address: str | None) -> Iterator[dict[str, float]]:
+        """Training episodes on ``count`` Ray actors (``actors``) until the budget is spent; the
+        learner here learns from each as it finishes, ``updates_per_decision`` updates per
+        decision, and broadcasts its weights every ``actors.broadcast_every`` updates."""
+        from exit_decision.learning.actors import ActorPool
+        pool = ActorPool(self.config, self.algorithm, self.validation_modes[0], self.action_space,
+                         self.shape.to_dict(), self.seed, count, address)
+        broadcast_every = self.training.actors.broadcast_every
+        dispatched = [self.state.episode]
+
+        def next_task() -> tuple | None:
+            if self.budget_spent(episodes) or (not self.training.environment_steps and dispatched[0] >= episodes):
+                return None
+            seed = self.seed * EPISODE_SEED_STRIDE + dispatched[0]
+            dispatched[0] += 1
+            return seed, self.episode_mode(), self.epsilon()
+
+        try:
+            pool.broadcast(self.agent.online.state_dict(), self.state.updates)
+            for finished in pool.episodes(next_task):
+                result = finished.result
+                age = self.state.updates - pool.updates_at[result['version']]
+                for transition in result['transitions']:
+                    self.experience.add(transition)
+                self.state.decisions += result['decisions']
+                losses = self.train_steps(result['decisions'] * self.training.updates_per_decision)
+                if self.state.updates - pool.updates_at[pool.version] >= broadcast_every:
+                    pool.broadcast(self.agent.online.state_dict(), self.state.updates)
+                yield self.finish_episode(finished.epsilon, losses, result['metrics'], actor=finished.actor,
+                                          weights_age=age, actor_seconds=result['seconds'])
+        finally:
+            self.actor_counts = pool.counts
+            pool.close()
