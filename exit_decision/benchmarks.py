@@ -39,8 +39,33 @@ def bench_simulation(config: ProjectConfig, episodes: int, seed: int) -> str:
     return '\n'.join(lines)
 
 
-def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
-    """Environment steps/s with and without learning, ms per update, inference latency."""
+#: the recipes ``bench learning`` measures: (label, algorithm, action space, override file under config/)
+LEARNING_RECIPES = (('the grid\'s conditioned MDGQN (demonstrations)', 'mdgqn', 'grid', None),
+                    ('the shipped recipe: the conditioned MDGQN over options, no demonstrations', 'mdgqn', 'options',
+                     'overrides/options_no_demonstrations.yaml'))
+
+
+def bench_learning(config_dir: Path | None, scenario_override, overrides, seed: int, episodes: int = 2) -> str:
+    """Per recipe (``LEARNING_RECIPES``): an episode's time without and with learning and their
+    ratio, the updates per episode (``updates_per_decision`` per decision: the ratio is not bought
+    by updating less), the time of one gradient update, and one greedy forward."""
+    from exit_decision.config import default_config_dir, load_project
+
+    lines = [f'learning benchmark ({episodes} episode(s) each way, torch threads: 1, one process)',
+             f'{"recipe":<74} {"update [ms]":>11} {"episode [s]":>11} {"+learning [s]":>13} {"ratio":>6} '
+             f'{"updates/ep":>10}']
+    for label, algorithm, action_space, override in LEARNING_RECIPES:
+        extra = [(config_dir or default_config_dir()) / override] if override else []
+        config = load_project(config_dir, scenario_override, [*overrides, *extra])
+        figures = _learning_figures(config, algorithm, action_space, seed, episodes)
+        lines.append(f'{label:<74} {figures["update_ms"]:>11.2f} {figures["without"]:>11.2f} {figures["with"]:>13.2f} '
+                     f'{figures["with"] / figures["without"]:>5.1f}x {figures["updates_per_episode"]:>10.0f}')
+        lines.append(f'  batch {figures["batch"]}, {figures["decisions_per_episode"]:.0f} decisions per episode; '
+                     f'greedy forward, all {config.graph.max_vehicles} rows CAVs: median {figures["forward_ms"]:.3f} ms')
+    return '\n'.join(lines)
+
+
+def _learning_figures(config, algorithm: str, action_space: str, seed: int, episodes: int) -> dict[str, float]:
     import tempfile
 
     import numpy as np
@@ -51,53 +76,53 @@ def bench_learning(config: ProjectConfig, seed: int, episodes: int = 2) -> str:
     from exit_decision.model.policy import q_values
 
     training = config.training.model_copy(update={
-        'warmup_decisions': 0,
-        'demonstrations': config.training.demonstrations.model_copy(update={'episodes': 1, 'pretrain_updates': 0}),
-        'validation': config.training.validation.model_copy(update={'every_episodes': 10 ** 6})})
+        'warmup_decisions': 0, 'validation': config.training.validation.model_copy(update={'every_episodes': 10 ** 6})})
     config = config.model_copy(update={'training': training})
-    lines = [f'learning benchmark, the mode-conditioned MDGQN ({episodes} episode(s) each, torch threads: 1)']
+    figures: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(config, 'mdgqn', CONDITIONED, seed, Path(tmp))
-        for transition in trainer.collector.episode(seed):
-            trainer.experience.demos.add(transition)
-        timings = {}
-        for label, updates in (('without learning', 0), ('with learning', training.updates_per_decision)):
+        trainer = Trainer(config, algorithm, CONDITIONED, seed, Path(tmp), action_space)
+        t = trainer.training
+        for transition in trainer.collector.episode(seed, trainer.agent.online, trainer.episode_mode(), 0.1):
+            trainer.experience.add(transition)   # a replay to sample from (untimed)
+        for label, updates in (('without', 0), ('with', t.updates_per_decision)):
+            counted = {'decisions': 0, 'updates': 0}
+
             def learn(transitions: list, updates: int = updates) -> None:
+                for transition in transitions:
+                    trainer.experience.add(transition)
+                counted['decisions'] += 1
                 for _ in range(updates):
                     trainer.learn_step()
-            steps, started = 0, time.perf_counter()
+                    counted['updates'] += 1
+            started = time.perf_counter()
             for episode in range(episodes):
-                trainer.collector.episode(seed + episode, trainer.agent.online, trainer.episode_mode(), 0.1,
+                trainer.collector.episode(seed + 1 + episode, trainer.agent.online, trainer.episode_mode(), 0.1,
                                           on_decision=learn)
-                steps += trainer.env.episode_log.steps
-            elapsed = time.perf_counter() - started
-            timings[label] = (steps / elapsed, elapsed / episodes)
-            lines.append(f'  env steps/s {label:<17} {steps / elapsed:8.0f}   ({elapsed / episodes:.2f} s per episode)')
+            figures[label] = (time.perf_counter() - started) / episodes
+            if updates:
+                figures['updates_per_episode'] = counted['updates'] / episodes
+                figures['decisions_per_episode'] = counted['decisions'] / episodes
         sampled = trainer.experience.sample()
         for _ in range(10):
             trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
         count, started = 200, time.perf_counter()
         for _ in range(count):
             trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
-        lines.append(f'  gradient update (batch {training.batch_size}): '
-                     f'{(time.perf_counter() - started) / count * 1000:.2f} ms')
+        figures['update_ms'] = (time.perf_counter() - started) / count * 1000
+        figures['batch'] = t.batch_size
         n, f = config.graph.max_vehicles, trainer.shape.num_features
         rng = np.random.default_rng(seed)
         graph = TrafficGraph(rng.random((n, f), dtype=np.float32), np.ones((n, n), np.uint8),
                              np.ones(n, bool), tuple(f'CAV_{i}' for i in range(n)))
         network = trainer.agent.online.eval()
         samples = []
-        for _ in range(1000):
+        for _ in range(500):
             started = time.perf_counter()
             q_values(network, graph, np.full(6, 0.25))
             samples.append((time.perf_counter() - started) * 1000)
-        samples = np.array(samples[50:])
-        lines.append(f'  greedy inference, {n} vehicles all CAVs, one forward: median {np.median(samples):.3f} ms, '
-                     f'p99 {np.percentile(samples, 99):.3f} ms')
+        figures['forward_ms'] = float(np.median(samples[50:]))
         trainer.env.close()
-    with_learning, without = timings['with learning'][0], timings['without learning'][0]
-    lines.append(f'  learning slows the environment by {without / with_learning:.1f}x')
-    return '\n'.join(lines)
+    return figures
 
 
 def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:

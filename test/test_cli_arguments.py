@@ -35,6 +35,7 @@ BAD = [
     ['train', '--algorithm', 'NOPE'], ['train', '--mode', 'NOPE'], ['train', '--episodes', '0'],
     ['train', '--seed', '-1'], ['train', '--resume', NOT_CHECKPOINT], ['train', '--resume', 'MISSING'],
     ['train', '--init', NOT_CHECKPOINT], ['train', '--action-space', 'nope'], ['train', '--reward-variant', 'NOPE'],
+    ['train', '--actors', '-1'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '0'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '-3'],
     ['evaluate', '--seed', '-1'], ['evaluate', '--policy', NOT_CHECKPOINT], ['evaluate', '--policy', 'MISSING'],

@@ -17,7 +17,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.what in ('sim', 'all'):
         print(bench_simulation(config, args.episodes, args.seed))
     if args.what in ('learning', 'all'):
-        print(bench_learning(config, args.seed, args.episodes))
+        print(bench_learning(args.config_dir, args.scenario_override, args.override, args.seed, args.episodes))
     if args.what in ('sweep', 'all'):
         from exit_decision.benchmarks import bench_sweep
         print(bench_sweep(args.config_dir, args.episodes, args.seed))
