@@ -294,3 +294,16 @@ def test_every_node_runs_on_the_bridges_clock(tmp_path):
         assert name in stamps, f'no diagnostics from {name}'
         assert max(stamps[name]) < episode_time, f'{name} is not on the simulation clock: {stamps[name][-3:]}'
     assert max(max(values) for values in stamps.values()) > 0, 'the clock advanced'
+
+
+def test_one_shipped_policy_starts_everywhere_the_node_the_launch_file_and_the_stack_command():
+    """`ros2 run exit_decision decision_node` (and graph_and_decision), the launch file and
+    `exit-decision stack` all start on the shipped policy, one constant."""
+    from exit_decision.cli import build_parser
+    from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
+    from exit_decision.ros.parameters import start_algorithm
+
+    stack = build_parser().parse_args(['stack'])
+    assert start_algorithm(list(SHIPPED_ALGORITHMS)) == ARGUMENTS['algorithm'].default == stack.algorithm \
+        == DEFAULT_ALGORITHM
+    assert start_algorithm(['gqn']) == 'gqn', 'another set of algorithms: the last loaded'

@@ -11,7 +11,7 @@ from rclpy.parameter import Parameter
 from exit_decision.config import ProjectConfig, default_config_dir, load_project
 from exit_decision.errors import ParameterError, PolicyError
 from exit_decision.model.modes import CUSTOM_MODE, ModeWeights
-from exit_decision.model.names import SHIPPED_ALGORITHMS, default_policy_dir, planned_policies
+from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS, default_policy_dir, planned_policies
 from exit_decision.model.selection import PolicySelection
 from exit_decision.ros.stack import cpu_affinity, realtime
 
@@ -119,6 +119,12 @@ def declare_config(node: Node) -> ProjectConfig:
     return load_project(Path(value) if value else default_config_dir())
 
 
+def start_algorithm(algorithms: list[str]) -> str:
+    """The decision node's algorithm when none is given: the shipped policy (``DEFAULT_ALGORITHM``,
+    the launch file's and ``exit-decision stack``'s too) when it is loaded, else the last loaded."""
+    return DEFAULT_ALGORITHM if DEFAULT_ALGORITHM in algorithms else algorithms[-1]
+
+
 def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, PolicySelection]:
     """The decision node's policy parameters (policy_dir, modes, algorithm, algorithms, mode,
     reward_weights): the policy directory and the selection of the start values (PolicyError, in
@@ -130,7 +136,8 @@ def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, P
         'modes whose per-mode policies are loaded at start', read_only=True))) or [None]
     algorithm = declare(node, 'algorithm', '', describe(
         'a learned method of config/training.yaml, _options after it for one over options, _conditioned at '
-        'the end for one policy of every mode; one of parameter algorithms; empty at start: the last of them',
+        f'the end for one policy of every mode; one of parameter algorithms; empty at start: the shipped policy '
+        f'({DEFAULT_ALGORITHM}) when it is loaded, else the last of them',
         constraints='an algorithm of parameter algorithms'))
     shipped = not algorithm or algorithm in SHIPPED_ALGORITHMS
     algorithms = list(declare(node, 'algorithms', list(SHIPPED_ALGORITHMS) if shipped else [algorithm], describe(
@@ -143,8 +150,8 @@ def declare_policy_selection(node: Node, config: ProjectConfig) -> tuple[Path, P
     weights = declare(node, 'reward_weights', start.tolist(), describe(
         'the mode\'s weights: result, efficiency, comfort, safety (sum 1), incentive, punishment '
         '(sum 1); a conditioned policy decides for any such point; given at start, they name the mode'))
-    selection = PolicySelection(config, planned_policies(algorithms, modes), algorithm or algorithms[-1], mode,
-                                weights)
+    selection = PolicySelection(config, planned_policies(algorithms, modes), algorithm or start_algorithm(algorithms),
+                                mode, weights)
     for name, value in (('algorithm', selection.algorithm), ('mode', selection.mode.name)):   # the start values
         if value != node.get_parameter(name).value:                                         # the selection settled on
             node.set_parameters([Parameter(name, Parameter.Type.STRING, value)])
