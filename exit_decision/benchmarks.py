@@ -62,6 +62,7 @@ def bench_learning(config_dir: Path | None, scenario_override, overrides, seed: 
                      f'{figures["with"] / figures["without"]:>5.1f}x {figures["updates_per_episode"]:>10.0f}')
         lines.append(f'  batch {figures["batch"]}, {figures["decisions_per_episode"]:.0f} decisions per episode; '
                      f'greedy forward, all {config.graph.max_vehicles} rows CAVs: median {figures["forward_ms"]:.3f} ms')
+        lines.append('  where an update goes [ms]: ' + ', '.join(f'{part} {ms:.2f}' for part, ms in figures['parts'].items()))
     return '\n'.join(lines)
 
 
@@ -109,6 +110,7 @@ def _learning_figures(config, algorithm: str, action_space: str, seed: int, epis
         for _ in range(count):
             trainer.agent.update(sampled.arrays, sampled.is_demo, 1.0)
         figures['update_ms'] = (time.perf_counter() - started) / count * 1000
+        figures['parts'] = _update_parts(trainer)
         figures['batch'] = t.batch_size
         n, f = config.graph.max_vehicles, trainer.shape.num_features
         rng = np.random.default_rng(seed)
@@ -123,6 +125,41 @@ def _learning_figures(config, algorithm: str, action_space: str, seed: int, epis
         figures['forward_ms'] = float(np.median(samples[50:]))
         trainer.env.close()
     return figures
+
+
+def _update_parts(trainer, count: int = 100) -> dict[str, float]:
+    """Mean milliseconds of each part of one gradient update, timed apart: sampling the batch
+    (replay, relabelling, scoring), the online forward on the batch's states, the bootstrap
+    targets (the target network's forward on the next states and, for double Q-learning, the
+    online one's), the backward pass, and the optimiser's step with clipping and the soft update."""
+    import torch
+    from torch import nn
+
+    agent = trainer.agent
+    parts = dict.fromkeys(('sample', 'forward', 'targets', 'backward', 'step'), 0.0)
+    for _ in range(count):
+        started = time.perf_counter()
+        sampled = trainer.experience.sample()
+        batch = {key: torch.from_numpy(value) for key, value in sampled.arrays.items()}
+        marks = [time.perf_counter()]
+        rows = torch.nonzero(batch['actions'] >= 0)
+        q = agent.online.cav_q_values(batch['features'], batch['adjacency'], rows, batch.get('weights'))
+        marks.append(time.perf_counter())
+        with torch.no_grad():
+            targets = agent.td_targets(batch, rows)
+        marks.append(time.perf_counter())
+        taken = q.gather(1, batch['actions'][rows[:, 0], rows[:, 1]].unsqueeze(1)).squeeze(1)
+        loss = nn.functional.smooth_l1_loss(taken, targets)
+        agent.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        marks.append(time.perf_counter())
+        nn.utils.clip_grad_norm_(agent.online.parameters(), agent.settings.gradient_clip)
+        agent.optimizer.step()
+        agent.soft_update()
+        marks.append(time.perf_counter())
+        for part, (begin, end) in zip(parts, zip([started, *marks[:-1]], marks)):
+            parts[part] += (end - begin) * 1000 / count
+    return parts
 
 
 def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:
