@@ -41,6 +41,8 @@ from exit_decision.config import (BaselineRewardConfig, IntentionRewardConfig, M
 from exit_decision.traffic import CAV, HV2, Neighbours, StepResult, TrafficSnapshot, VehicleState
 
 ROWS = ('result', 'efficiency', 'comfort', 'safety')
+#: a reward vector's entries as the tables' columns, row by row: result_I, result_P, efficiency_I, ...
+VECTOR_COLUMNS = tuple(f'{row}_{side}' for row in ROWS for side in ('I', 'P'))
 RESULT, EFFICIENCY, COMFORT, SAFETY = range(4)
 INCENTIVE, PUNISHMENT = 0, 1
 SAFETY_TIME_CAP = 10.0      # [s] time gaps longer than this count as 10 s

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from exit_decision.driving.prior import VECTOR_COLUMNS, PriorTable
+from exit_decision.driving.prior import PriorTable
 from exit_decision.model.modes import ModeWeights
-from exit_decision.reward import scalar, weights_of_input
+from exit_decision.reward import VECTOR_COLUMNS, scalar, weights_of_input
 
 
 def rows_of(style_vectors: dict, seeds=(1, 2), variant='headway'):

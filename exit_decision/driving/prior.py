@@ -18,17 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from exit_decision.agents.options import OptionSpace
-from exit_decision.driving.fixed import OptionDriver
-from exit_decision.driving.interface import StepDecision
-from exit_decision.graph import TrafficGraph
+from exit_decision.driving.fixed import OPTION_PREFIX, OptionDriver
 from exit_decision.model.modes import Mode
-from exit_decision.reward import ROWS, weights_of_input
-from exit_decision.traffic import TrafficSnapshot
+from exit_decision.reward import ROWS, VECTOR_COLUMNS, weights_of_input
 
-#: the reward vector's columns as the tables write them (``experiments.reward_sanity.variant_rows``)
-VECTOR_COLUMNS = tuple(f'{row}_{side}' for row in ROWS for side in ('I', 'P'))
-#: the prefix of a constant option's run in the tables
-OPTION_PREFIX = 'option_'
 
 
 @dataclass(frozen=True)
@@ -74,31 +67,20 @@ class PriorTable:
         first = next(iter(seeds.values()))
         if any(found != first for found in seeds.values()):
             raise ValueError('the styles of the table ran on different seeds')
-        vectors = {style: np.array([[np.mean([float(row[f'{r}_{side}']) for row in episodes]) for side in ('I', 'P')]
-                                    for r in ROWS]) for style, episodes in by_style.items()}
+        vectors = {style: np.array([[float(row[column]) for column in VECTOR_COLUMNS] for row in episodes])
+                   .mean(axis=0).reshape(len(ROWS), 2) for style, episodes in by_style.items()}
         return cls(variant, tuple(first), vectors)
 
 
-class PriorDriver:
-    """Every CAV holds the constant option of the table's best style for the mode."""
+class PriorDriver(OptionDriver):
+    """Every CAV holds the constant option of the table's best style for the mode (made with one)."""
 
-    def __init__(self, table: PriorTable, space: OptionSpace, mode: Mode | None = None, name: str = 'prior'):
-        self.table, self.space, self.name = table, space, name
-        self.style: str | None = None
-        self._index = -1
-        self._driver = OptionDriver(name, space, lambda graph, snapshot: lambda vehicle, mask: self._index)
-        if mode is not None:
-            self.set_mode(mode)
+    def __init__(self, table: PriorTable, space: OptionSpace, mode: Mode, name: str = 'prior'):
+        super().__init__(name, space, lambda graph, snapshot: lambda vehicle, mask: self._index)
+        self.table = table
+        self.set_mode(mode)
 
     def set_mode(self, mode: Mode) -> None:
         self.style = self.table.best_style(mode.weights)
         self._index = self.space.index('route', self.style)
         self.reset()
-
-    def reset(self) -> None:
-        self._driver.reset()
-
-    def decide(self, graph: TrafficGraph, snapshot: TrafficSnapshot, time: float) -> StepDecision:
-        if self.style is None:
-            raise ValueError(f'{self.name}: no mode set (set_mode) before the first decision')
-        return self._driver.decide(graph, snapshot, time)

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from exit_decision.config import ConfigError, ProjectConfig, RuleBasedConfig, load_yaml, parse
 from exit_decision.evaluation.statistics import paired_interval
-from exit_decision.reward import ROWS, make_reward, scalar
+from exit_decision.reward import ROWS, VECTOR_COLUMNS, make_reward, scalar
 from exit_decision.tables import write_rows
 
 
@@ -82,7 +82,7 @@ def variant_rows(config: ProjectConfig, env, variants: list[str], key: dict, met
                              config.scenario.emergency_braking_threshold)
         vector = sum((reward.vector(inputs).total() for inputs in env.step_inputs), np.zeros((4, 2)))
         row = {**key, 'variant': variant, **metrics}
-        row.update({f'{r}_{side}': vector[i, j] for i, r in enumerate(ROWS) for j, side in enumerate(('I', 'P'))})
+        row.update(zip(VECTOR_COLUMNS, vector.ravel()))
         row.update({f'return_{mode}': float(scalar(vector, reward.weights(config.mode(mode)))) for mode in config.modes})
         rows.append(row)
     return rows
@@ -156,7 +156,7 @@ def calibrate(rows: list[dict], config: ProjectConfig, variant: str, neutral: st
     """Multipliers m of the efficiency, comfort and safety rows (scales divided by m) under
     which the expected orderings hold most clearly; the recorded vectors are rescaled."""
     by = _by_driver_and_seed(rows, variant)
-    columns = [f'{r}_{side}' for r in ROWS for side in ('I', 'P')]
+    columns = list(VECTOR_COLUMNS)
     vector = {key: np.array([float(row[c]) for c in columns]).reshape(4, 2) for key, row in by.items()}
     reward = make_reward(config.reward(variant), config.scenario.step_length)
     pairs = []

@@ -170,7 +170,7 @@ class Collector:
         """The decision taken in ``state`` (``row_of``: its graph's rows): each CAV row's action
         (on the grid with the mask it chose under; over options the option it holds, and whether
         it began it here)."""
-        masks = state.masks.copy()
+        masks = state.masks   # made for this decision alone (``decision_state``)
         actions = np.full(len(state.actions), NO_ACTION, np.int64)
         for vehicle_id, action in decision.actions.items():
             actions[row_of[vehicle_id]] = action

@@ -73,6 +73,8 @@ class Trainer:
         if not self.conditioned:
             config.mode(mode)   # an unknown mode fails here, naming the known ones
         self.validation_modes = list(c.validation_modes) if self.conditioned else [mode]
+        #: a per-mode run's mode, every episode's (a conditioned run draws one per episode)
+        self.own_mode = None if self.conditioned else self.modes.mode(mode)
         # SGRL trains one CAV at a time (the others drive as humans); validation runs every CAV
         self.action_space = action_space
         self.rng = np.random.default_rng(seed)
@@ -120,7 +122,7 @@ class Trainer:
 
     def episode_mode(self) -> Mode:
         """The mode the policy acts for in a training episode (conditioned: weights drawn)."""
-        return self.modes.of_weights(self.sampler.sample(1)[0]) if self.conditioned else self.modes.mode(self.mode)
+        return self.modes.of_weights(self.sampler.sample(1)[0]) if self.conditioned else self.own_mode
 
     # --- learning ---------------------------------------------------------------------------
 
