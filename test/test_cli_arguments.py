@@ -11,6 +11,7 @@ from exit_decision.cli import build_parser, main
 REPO = Path(__file__).resolve().parent.parent
 FIXTURE_BAG = str(REPO / 'test' / 'fixtures' / 'replay_bag' / 'bag')
 NOT_CHECKPOINT = str(REPO / 'README.md')
+A_POLICY = str(REPO / 'policies' / 'probes' / 'mdgqn_options_conditioned_traffic' / 'policy.pt')
 
 #: what each command would start: none of it may run (replay and bag repair open the bag first:
 #: that is where a bag that cannot be read is refused)
@@ -25,7 +26,7 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
         ('exit_decision.evaluation.plots', 'make_all'), ('exit_decision.experiments.compare', 'run_sweep'),
         ('exit_decision.experiments.compare', 'run_trainings'), ('exit_decision.benchmarks', 'bench_simulation'),
         ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_sweep'),
-        ('exit_decision.ros.stack.bench', 'bench_ros')]
+        ('exit_decision.ros.stack.bench', 'bench_ros'), ('exit_decision.learning.anchoring', 'tune_anchor')]
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
 BAD = [
@@ -36,6 +37,10 @@ BAD = [
     ['train', '--seed', '-1'], ['train', '--resume', NOT_CHECKPOINT], ['train', '--resume', 'MISSING'],
     ['train', '--init', NOT_CHECKPOINT], ['train', '--action-space', 'nope'], ['train', '--reward-variant', 'NOPE'],
     ['train', '--actors', '-1'],
+    ['anchor', '--policy', 'MISSING'], ['anchor', '--policy', NOT_CHECKPOINT], ['anchor', '--kappa', '-1'],
+    ['anchor', '--margin', 'x'], ['anchor', '--episodes', '0'], ['anchor', '--jobs', '0'],
+    ['anchor', '--policy', A_POLICY, '--out', 'EXISTING', '--reward-variant', 'NOPE'],
+    ['anchor', '--config-dir', 'MISSING'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '0'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '-3'],
     ['evaluate', '--seed', '-1'], ['evaluate', '--policy', NOT_CHECKPOINT], ['evaluate', '--policy', 'MISSING'],

@@ -211,6 +211,16 @@ def test_double_q_action_choice_under_the_next_mask(double, expected_bootstrap):
     assert targets.item() == pytest.approx(1.0 + 0.9 * expected_bootstrap)
 
 
+@pytest.mark.parametrize('double', [False, True])
+def test_bootstrapping_on_the_prior_values_the_next_state_by_the_priors_option(double):
+    """``bootstrap: prior``: the target takes the prior's option at s' (here 3), whatever the
+    networks' greedy choice (2 for both): the network learns Q of the prior."""
+    batch = {k: torch.from_numpy(v) for k, v in make_batch().items()}
+    batch['prior_actions'] = torch.tensor([3])
+    agent = agent_with(double, online_values=[100.0, 0.0, 9.0, 3.0], target_values=[100.0, 1.0, 7.0, 5.0])
+    assert agent.td_targets(batch, torch.tensor([[0, 0]])).item() == pytest.approx(1.0 + 0.9 * 5.0)
+
+
 def test_a_vehicle_that_left_gets_a_terminal_target():
     batch = {k: torch.from_numpy(v) for k, v in make_batch(next_q_rows_alive=False).items()}
     agent = agent_with(True, [0.0, 0.0, 1.0, 3.0], [0.0, 1.0, 7.0, 5.0])

@@ -80,3 +80,66 @@ def test_the_prior_measured_in_the_environment_drives_the_best_style_of_its_mode
         np.testing.assert_allclose(vector, table.vectors[driver.style])   # one seed: the table is that episode
     finally:
         env.close()
+
+
+def test_the_batched_best_style_is_the_scalar_one_at_every_weight_point(project_config):
+    """Training's targets take the prior's option per transition from its weight multipliers."""
+    table = PriorTable('headway', (1, 2), {'fast': FAST, 'calm': CALM})
+    rng = np.random.default_rng(0)
+    decision = rng.dirichlet(np.ones(4), size=50)
+    incentive = rng.random(50)
+    weights = np.column_stack([decision, incentive, 1.0 - incentive])
+    chosen = table.best_indices(weights_of_input(weights))
+    assert [list(table.vectors)[i] for i in chosen] == [table.best_style(w) for w in weights]
+    assert set(chosen) == {0, 1}, 'both styles are best somewhere on the simplex'
+
+
+def test_an_anchored_choice_departs_only_where_the_bound_beats_the_margin():
+    from exit_decision.driving.anchored import Anchor
+
+    prior = 0
+    # two members, one row each of three CAV rows; options: 0 (the prior's), 1, 2
+    q = np.array([[[1.0, 1.5, 0.9], [1.0, 3.0, 1.1], [1.0, 1.2, 1.0]],
+                  [[2.0, 2.5, 1.9], [1.0, -0.5, 1.1], [1.0, 1.2, 1.0]]])
+    greedy = Anchor(kappa=0.0, margin=0.0).scores(q, prior)
+    assert greedy.argmax(1).tolist() == [1, 1, 1], 'kappa 0, margin 0: the greedy choice of the members\' mean'
+    cautious = Anchor(kappa=1.0, margin=0.0).scores(q, prior)
+    assert cautious.argmax(1).tolist() == [1, 2, 1], \
+        'the members disagree on row 1\'s option 1: its bound falls below the agreed, smaller gain of option 2'
+    assert Anchor(kappa=1.0, margin=0.3).scores(q, prior).argmax(1).tolist() == [1, 0, 0], \
+        'gains under the margin fall back to the prior'
+    one = Anchor(kappa=5.0, margin=0.0).scores(q[:1], prior)
+    assert one.argmax(1).tolist() == [1, 1, 1], 'one member has no spread: only the margin gates it'
+
+
+def test_the_prior_driver_explores_around_its_option(tmp_path):
+    """Training with ``exploration.around: prior``: a CAV begins the prior's option unless it explores."""
+    from exit_decision.agents.options import OptionSpace
+    from exit_decision.config import load_project
+    from exit_decision.driving.episode import play_episode
+    from exit_decision.driving.prior import PriorDriver
+    from exit_decision.env import ExitDecisionEnv
+    from ros_helpers import small_config_dir
+
+    config = load_project(small_config_dir(tmp_path / 'config'))
+    env = ExitDecisionEnv(config)
+    try:
+        styles = list(config.env.options.styles)
+        table = PriorTable('headway', (1,), {style: FAST if style == styles[0] else CALM for style in styles})
+        space = OptionSpace(config, env.shield, env.planner)
+        mode = ModeWeights(config).mode('AGGI')
+        other = space.index('keep', styles[-1])
+        calls = []
+
+        def explore(mask):   # every third choice explores, where the option is allowed
+            calls.append(other if len(calls) % 3 == 2 and mask[other] else None)
+            return calls[-1]
+        driver = PriorDriver(table, space, mode, explore=explore)
+        prior = space.index('route', table.best_style(mode.weights))
+        began = []
+        play_episode(env, driver, 7, lambda decision, *_: began.extend(decision.actions[v] for v in decision.began))
+        assert len(began) == len(calls) > 3 and other in began
+        assert sorted(began) == sorted(prior if explored is None else explored for explored in calls), \
+            'the options begun are the explored ones and, for the rest, the prior\'s'
+    finally:
+        env.close()

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known
+from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known, number
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
 from exit_decision.model.names import algorithm_name, run_name
@@ -41,6 +41,20 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f'{args.actors} actors: {counts.restarts} episode(s) given again after an actor died, '
               f'{len(counts.dropped)} actor(s) dropped past actors.max_restarts')
     print(f'best policy: {policy} (validation score {trainer.state.best_score:.3f}); logs in {out_dir}')
+    return 0
+
+
+def cmd_anchor(args: argparse.Namespace) -> int:
+    """An anchored policy from training runs, its (kappa, margin) chosen on the validation seeds."""
+    from exit_decision.learning.anchoring import tune_anchor
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    if args.reward_variant:
+        known('--reward-variant', args.reward_variant, config.reward)
+        config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
+    policy, score = tune_anchor(config, args.policy, args.kappa or [0.0, 1.0, 2.0], args.margin or [0.0],
+                                args.episodes, args.out, args.jobs)
+    print(f'anchored policy: {policy} (validation score {score:.3f}); every point in {args.out / "anchor.csv"}')
     return 0
 
 
@@ -88,3 +102,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help='with --actors: a running Ray cluster, host:port of its head (default: a local Ray on '
                             'loopback)')
     train.set_defaults(func=cmd_train)
+
+    anchor = commands.add_parser(
+        'anchor', help='one policy of several training runs over options, departing from their prior only where '
+                       'their lower confidence bound beats a margin (docs/design.md, "Learning")',
+        epilog='example:\n  exit-decision anchor --policy runs/seed_1/policy.pt --policy runs/seed_2/policy.pt '
+               '--policy runs/seed_3/policy.pt --kappa 0 --kappa 1 --margin 0 --margin 0.05 --out runs/anchored')
+    config_options(anchor)
+    anchor.add_argument('--policy', type=checkpoint, action='append', required=True,
+                        help='a member: a policy.pt of a conditioned run over options (repeat: one per training seed)')
+    anchor.add_argument('--kappa', type=number(float, 0.0), action='append', default=None,
+                        help='a width of the lower bound, in the members\' standard deviations (repeat; default: 0 1 2)')
+    anchor.add_argument('--margin', type=number(float, 0.0), action='append', default=None,
+                        help='what the bound must beat to depart from the prior, in the learning reward\'s units '
+                             '(repeat; default: 0)')
+    anchor.add_argument('--episodes', type=COUNT, default=50, help='validation seeds per mode (from 900000)')
+    anchor.add_argument('--jobs', type=COUNT, default=1, help='validations run at once, one process each')
+    anchor.add_argument('--reward-variant', default=None,
+                        help='a variant of config/reward.yaml the returns are scored under (default: env.yaml)')
+    anchor.add_argument('--out', type=Path, required=True,
+                        help='where the candidates, anchor.csv, anchor.json and the chosen policy.pt go')
+    anchor.set_defaults(func=cmd_anchor)

@@ -450,6 +450,9 @@ class ExplorationConfig(Strict):
     epsilon_decay_steps: PositiveInt | None = None   # given: the decay runs over this many RL decisions instead
     keep_lane_probability: Probability
     acceleration_std: NonNegativeFloat
+    #: greedy: explore around the network's greedy choice; prior (options only): around the
+    #: prior's option (``driving.prior``), the data one step of improvement over it needs
+    around: Literal['greedy', 'prior'] = 'greedy'
 
 
 class DemonstrationConfig(Strict):
@@ -507,6 +510,11 @@ class TrainingConfig(Strict):
     gradient_clip: PositiveFloat
     reward_scale: PositiveFloat
     credit: Literal['own', 'global']
+    #: the option a target bootstraps on in the next state: greedy (Q-learning), or prior
+    #: (options only): the prior's option, SPIBB's bootstrapping with every other option
+    #: counted as rarely tried; the network then learns Q of the prior, and its greedy
+    #: choice is one step of policy improvement over it
+    bootstrap: Literal['greedy', 'prior'] = 'greedy'
     conditioning: ConditioningConfig
     methods: dict[str, MethodConfig]
     actors: ActorsConfig = ActorsConfig()

@@ -20,6 +20,7 @@ from exit_decision.agents.lane_planner import LanePlanner
 from exit_decision.agents.options import OptionSpace
 from exit_decision.agents.shield import Decision, Shield
 from exit_decision.config import ProjectConfig
+from exit_decision.driving.anchored import AnchoredSource
 from exit_decision.driving.fixed import GridDriver, OptionChooser, OptionDriver
 from exit_decision.driving.interface import StepDecision
 from exit_decision.errors import PolicyError
@@ -96,10 +97,12 @@ class PolicyDriver:
 
 
 def policy_driver(controller: PolicyController, config: ProjectConfig, mode: Mode | None = None) -> PolicyDriver:
-    """The driver of a loaded policy, over the config's options when the policy acts on them."""
+    """The driver of a loaded policy, over the config's options when the policy acts on them
+    (an anchored policy through its departure scores, ``anchored``)."""
     options = OptionSpace(config, controller.shield, controller.planner) \
         if controller.policy.action_space == 'options' else None
-    return PolicyDriver(controller, options, mode)
+    source = AnchoredSource(controller, options) if 'anchor' in controller.policy.metadata else controller
+    return PolicyDriver(source, options, mode)
 
 
 def own_mode(controller: PolicyController, modes: ModeWeights, mode: str) -> Mode:

@@ -12,7 +12,7 @@ chosen again when the mode changes.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +34,16 @@ class PriorTable:
         """Each style's mean return at a weight input (six numbers)."""
         multipliers = weights_of_input(weights)
         return {style: float((vector * multipliers).sum()) for style, vector in self.vectors.items()}
+
+    def best_indices(self, multipliers: np.ndarray) -> np.ndarray:
+        """(B,) index into the table's styles of the best one at each of ``multipliers``
+        ((B, 4, 2), ``reward.weights_of_input``): the batched ``best_style`` of training's targets."""
+        vectors = np.stack(list(self.vectors.values()))
+        return np.einsum('srk,brk->bs', vectors, multipliers).argmax(axis=1)
+
+    def option_indices(self, space: OptionSpace) -> np.ndarray:
+        """(styles,) each style's constant option (``route``) in ``space``."""
+        return np.array([space.index('route', style) for style in self.vectors], dtype=np.int64)
 
     def best_style(self, weights: np.ndarray) -> str:
         """The style of highest mean return at ``weights`` (the first on a tie, in table order)."""
@@ -73,12 +83,18 @@ class PriorTable:
 
 
 class PriorDriver(OptionDriver):
-    """Every CAV holds the constant option of the table's best style for the mode (made with one)."""
+    """Every CAV holds the constant option of the table's best style for the mode (made with one);
+    with ``explore`` (training, ``exploration.around: prior``) a CAV may begin another instead."""
 
-    def __init__(self, table: PriorTable, space: OptionSpace, mode: Mode, name: str = 'prior'):
-        super().__init__(name, space, lambda graph, snapshot: lambda vehicle, mask: self._index)
-        self.table = table
+    def __init__(self, table: PriorTable, space: OptionSpace, mode: Mode, name: str = 'prior',
+                 explore: Callable[[np.ndarray], int | None] | None = None):
+        super().__init__(name, space, lambda graph, snapshot: self._choose)
+        self.table, self.explore = table, explore
         self.set_mode(mode)
+
+    def _choose(self, vehicle, mask: np.ndarray) -> int:
+        explored = self.explore(mask) if self.explore is not None else None
+        return self._index if explored is None else explored
 
     def set_mode(self, mode: Mode) -> None:
         self.style = self.table.best_style(mode.weights)

@@ -24,13 +24,22 @@ from exit_decision.visualization.episodes import ShowEpisodes
 
 @dataclass
 class EvaluationResult:
-    """What a run chose on the grid (drivers over options and off the grid add nothing)."""
+    """What a run chose: on the grid its actions and the shield's refusals; over options, given
+    the prior's option (``prior_option``), how often a CAV began another (``driving.prior``)."""
     action_counts: np.ndarray | None = None   # how often each action of the grid was chosen
     overrides: int = 0                         # first choices the shield refused
     decisions: int = 0                         # CAV decisions made
+    prior_option: int | None = None            # over options: the prior's option at the run's mode
+    choices: int = 0                           # over options: options begun
+    departures: int = 0                        # over options: options begun that are not the prior's
 
     def add(self, decision: StepDecision, grid_size: int) -> None:
-        if decision.options is not None or not decision.actions:
+        if decision.options is not None:
+            if self.prior_option is not None:
+                self.choices += len(decision.began)
+                self.departures += sum(decision.actions[v] != self.prior_option for v in decision.began)
+            return
+        if not decision.actions:
             return
         if self.action_counts is None:
             self.action_counts = np.zeros(grid_size, dtype=np.int64)
@@ -95,6 +104,15 @@ def scored_episodes(episodes: list[dict], weights) -> list[dict]:
             for e in episodes]
 
 
+def prior_option(policy, env: ExitDecisionEnv, mode) -> int | None:
+    """The option of the prior a policy over options carries (``GraphPolicy.prior``) at ``mode``;
+    None on the grid or without a prior."""
+    if policy.action_space != 'options' or policy.prior is None:
+        return None
+    table = PriorTable.from_metadata(policy.prior)
+    return OptionSpace(env.config, env.shield, env.planner).index('route', table.best_style(mode.weights))
+
+
 def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str], seeds: list[int],
                     show: ShowEpisodes | None = None, name: str | None = None) -> list[EvaluatedRun]:
     """The policy at ``path`` on the seeds, scored under each mode: a conditioned one acts at
@@ -110,8 +128,8 @@ def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str]
     runs, played, result = [], None, None
     for mode in modes:
         if policy.conditioned or played is None:
-            result = EvaluationResult()
             driver.set_mode(own_mode(controller, modes_weights, mode))
+            result = EvaluationResult(prior_option=prior_option(policy, env, driver.mode))
             desc = f'{name} at {mode}' if policy.conditioned else name
             played = play_episodes(env, driver, seeds, result, desc,
                                    show and show.named(f'{name}_{mode}' if policy.conditioned else name, driver.mode.name))

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from exit_decision.config import ActionSpaceName, ProjectConfig
+from exit_decision.driving.prior import PriorTable
 from exit_decision.errors import UsageError
 from exit_decision.learning.collecting import method_collector
 from exit_decision.model.modes import Mode
@@ -77,13 +78,14 @@ class CollectingActor:
     """One actor's simulation and collector (made remote by ``ActorPool``)."""
 
     def __init__(self, config: ProjectConfig, algorithm: str, env_mode: str, action_space: ActionSpaceName,
-                 shape: dict, seed: int, index: int):
+                 shape: dict, seed: int, index: int, prior: dict | None = None):
         import torch
 
         from exit_decision.model.networks import GraphQNetwork, NetworkShape
         torch.set_num_threads(1)
         self.collector = method_collector(config, algorithm, env_mode, action_space,
-                                          np.random.default_rng([seed, index]))
+                                          np.random.default_rng([seed, index]),
+                                          None if prior is None else PriorTable.from_metadata(prior))
         self.network = GraphQNetwork(NetworkShape(**shape))
         self.version = -1
 
@@ -126,14 +128,14 @@ class ActorPool:
     ``broadcast(state_dict)`` sends new weights."""
 
     def __init__(self, config: ProjectConfig, algorithm: str, env_mode: str, action_space: ActionSpaceName,
-                 shape: dict, seed: int, count: int, address: str | None):
+                 shape: dict, seed: int, count: int, address: str | None, prior: dict | None = None):
         import exit_decision
         start_ray(address, count, Path(exit_decision.__file__).resolve().parent.parent)
         import ray
         settings = config.training.of_method(algorithm).actors
         self.spread = settings.epsilon_spread
         remote = ray.remote(num_cpus=1, max_restarts=settings.max_restarts, max_task_retries=0)(CollectingActor)
-        self.actors = [remote.remote(config, algorithm, env_mode, action_space, shape, seed, index)
+        self.actors = [remote.remote(config, algorithm, env_mode, action_space, shape, seed, index, prior)
                        for index in range(count)]
         self.counts = PoolCounts()
         self.version, self.weights = -1, None

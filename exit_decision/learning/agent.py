@@ -6,6 +6,9 @@ row's m-step return (its own credit or the shared reward, scored under the batch
 mode weights w by the trainer) and gamma^K the window's discount:
 - single (GQN, DQN):    y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_target(s')_i
 - double (MDGQN, DDQN): y_i = R + gamma^K * Q_target(s')_i[a*], a* = argmax allowed Q_online(s')_i
+- over options with ``bootstrap: prior``: a* = the prior's option at the batch element's weights
+  (``driving.prior``; SPIBB's bootstrapping to the baseline), so Q is the prior's, and a greedy
+  choice on it is one step of policy improvement
 (the m of the window is the method's: 1 for GQN, 3 for MDGQN). Over options, a row whose option
 is still held at s' bootstraps on Q(s')_i[a_i], the option it holds (intra-option learning). With prioritized replay each
 transition's loss is weighted by its importance weight and its new priority is the largest
@@ -62,11 +65,12 @@ class GraphQAgent:
         alive = batch['alive'][b, r] & next_mask.any(-1)
         weights = batch.get('weights')
         target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
-        if self.settings.double:
-            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
+        if 'prior_actions' in batch:   # bootstrap on the prior's option (its route option: always allowed)
+            best = batch['prior_actions'][b]
         else:
-            chooser = target_q
-        best = self.masked_argmax(chooser, next_mask)
+            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights) \
+                if self.settings.double else target_q
+            best = self.masked_argmax(chooser, next_mask)
         if 'continuing' in batch:   # options: a row whose option goes on is valued by that option
             best = torch.where(batch['continuing'][b, r], batch['actions'][b, r], best)
         bootstrap = target_q.gather(1, best.unsqueeze(1)).squeeze(1)

@@ -36,13 +36,15 @@ def git_revision() -> str:
     return result.stdout.strip() or 'unknown'
 
 
-def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any]) -> None:
+def save_policy(path: Path, network: GraphQNetwork, metadata: dict[str, Any],
+                members: tuple[GraphQNetwork, ...] = ()) -> None:
     """Write a checkpoint (``model.policy.load_policy`` reads it); ``metadata`` must be plain
-    data (str, numbers, lists, dicts)."""
+    data (str, numbers, lists, dicts); ``members``: an ensemble's other networks, of ``network``'s shape."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(path.suffix + '.tmp')
     torch.save({'format': CHECKPOINT_FORMAT, 'network': network.shape.to_dict(),
-                'state_dict': network.state_dict(), 'metadata': metadata}, temporary)
+                'state_dict': network.state_dict(), 'metadata': metadata,
+                **({'members': [member.state_dict() for member in members]} if members else {})}, temporary)
     temporary.replace(path)
 
 

@@ -21,6 +21,7 @@ from exit_decision.driving.fixed import GridDriver, constant_option
 from exit_decision.driving.interface import Driver, StepDecision
 from exit_decision.driving.episode import play_episode
 from exit_decision.driving.policy import PolicyDriver
+from exit_decision.driving.prior import PriorDriver, PriorTable
 from exit_decision.encoders import StateEncoder
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.graph import TrafficGraph
@@ -63,18 +64,21 @@ class LearningQ:
 
 
 def method_collector(config: ProjectConfig, algorithm: str, env_mode: str, action_space: ActionSpaceName,
-                     rng: np.random.Generator) -> Collector:
+                     rng: np.random.Generator, prior: PriorTable | None = None) -> Collector:
     """A training run's environment and collector for ``algorithm`` (one per process: the
     trainer's, and each Ray actor's): the method's encoder, reward and agents (SGRL trains one
-    CAV at a time); as published, the bare shield and no planner (the env's serve the teacher)."""
+    CAV at a time); as published, the bare shield and no planner (the env's serve the teacher);
+    ``prior``: the prior's table, when already measured (an actor's)."""
     method, training = config.training.method(algorithm), config.training.of_method(algorithm)
     env = ExitDecisionEnv(config, mode=env_mode, single_agent=method.single_agent,
                           learning_reward=method.reward_variant, action_space=action_space)
     road = config.scenario.road
     encoder = StateEncoder(method.encoder, env.graph_builder.num_features, road.lane_count, road.highway_speed_limit)
-    return Collector(env, encoder, env.shield if method.measures else env.shield.bare(),
-                     env.planner if method.measures else None, training.exploration, method.multi_step,
-                     training.gamma, rng)
+    collector = Collector(env, encoder, env.shield if method.measures else env.shield.bare(),
+                          env.planner if method.measures else None, training.exploration, method.multi_step,
+                          training.gamma, rng)
+    collector.prior = prior
+    return collector
 
 
 class Collector:
@@ -90,14 +94,23 @@ class Collector:
         self.grid, self.options = env.actions, env.options   # options: None on the grid
         self.demonstrator: Driver = GridDriver('demonstrator', self.grid, env.rule_based_driver().decide) \
             if self.options is None else constant_option(self.options, env.config.env.options.neutral_style)
+        #: the prior over options (``driving.prior``), once measured: ``exploration.around: prior``
+        #: explores around its option instead of the network's greedy one
+        self.prior: PriorTable | None = None
 
     def driver(self, network: GraphQNetwork | None, mode: Mode | None, epsilon: float) -> Driver:
-        """The demonstrator (``network`` None), or the network epsilon-greedy for ``mode``."""
+        """The demonstrator (``network`` None), or the network epsilon-greedy for ``mode`` (with
+        ``exploration.around: prior``, the prior's option epsilon-greedy)."""
         if network is None:
             return self.demonstrator
         explore = self.explore if self.options is None else self.explore_option
+        exploring = lambda mask: explore(mask) if self.rng.random() < epsilon else None   # noqa: E731
+        if self.exploration.around == 'prior':
+            if self.options is None or self.prior is None:
+                raise ValueError('exploration around the prior needs options and the prior measured')
+            return PriorDriver(self.prior, self.options, mode, explore=exploring)
         return PolicyDriver(LearningQ(network, self.encoded, self.shield, self.planner), self.options, mode,
-                            explore=lambda mask: explore(mask) if self.rng.random() < epsilon else None)
+                            explore=exploring)
 
     def episode(self, seed: int, network: GraphQNetwork | None = None, mode: Mode | None = None,
                 epsilon: float = 0.0, on_decision: OnDecision | None = None) -> list[Transition]:

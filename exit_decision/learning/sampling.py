@@ -9,6 +9,7 @@ Q-learning). Each CAV row learns from its own credit or, as an ablation, the glo
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,6 +63,9 @@ class Experience:
         self.priorities = PrioritizedSampler(training.replay_size, prioritized.alpha, prioritized.beta) \
             if prioritized else None
         self.demos = ReplayBuffer(max(1, 250 * training.demonstrations.episodes), rows, features, actions)
+        #: ``bootstrap: prior``: the prior's option at each transition's weight multipliers
+        #: ((B, 4, 2) -> (B,)), given to the batch as ``prior_actions``; set once the prior is measured
+        self.prior_actions: Callable[[np.ndarray], np.ndarray] | None = None
 
     def add(self, transition: Transition) -> None:
         """The agent's own transition (prioritized replay: at the highest priority so far)."""
@@ -99,6 +103,8 @@ class Experience:
         else:
             multipliers = np.broadcast_to(self.learning_weights, (size, 4, 2))
         batch['rewards'] = scored_rewards(batch, multipliers, t.credit) * np.float32(t.reward_scale)
+        if self.prior_actions is not None:
+            batch['prior_actions'] = self.prior_actions(multipliers)
         del batch['returns'], batch['global_returns']
         return SampledBatch(batch, np.concatenate(is_demo), importance if self.priorities is not None else None,
                             indices)

@@ -180,9 +180,9 @@ class Trainer:
         validation = self.training.validation
         seeds = validation_seeds(validation.episodes)
         if self.action_space == 'options':   # the prior every checkpoint carries (driving.prior)
-            from exit_decision.evaluation.evaluate import measure_prior
-            self.checkpoints.description['prior'] = measure_prior(
-                self.env, seeds, desc='the prior' if progress else None).to_metadata()
+            self.use_prior(seeds, progress)
+        elif 'prior' in (self.training.bootstrap, self.training.exploration.around):
+            raise ValueError('bootstrap and exploration around the prior need --action-space options')
         task = ValidationTask(self.config, self.validation_modes, seeds, self.action_space)
         with Validator(task, validation.parallel, self.env) as validator:
             if self.state.episode == 0:
@@ -216,6 +216,18 @@ class Trainer:
                                       f'demonstrations, RL and validation; network from {init}, not pre-trained'
                                       if init is not None else 'demonstrations, pre-training, RL and validation')
         return self.out_dir / 'policy.pt'
+
+    def use_prior(self, seeds: list[int], progress: bool) -> None:
+        """Measure the prior on the validation seeds: every checkpoint carries it; with
+        ``bootstrap: prior`` the targets bootstrap on its option, with ``exploration.around:
+        prior`` the episodes explore around it."""
+        from exit_decision.evaluation.evaluate import measure_prior
+        prior = measure_prior(self.env, seeds, desc='the prior' if progress else None)
+        self.checkpoints.description['prior'] = prior.to_metadata()
+        self.collector.prior = prior
+        if self.training.bootstrap == 'prior':
+            options = prior.option_indices(self.env.options)
+            self.experience.prior_actions = lambda multipliers: options[prior.best_indices(multipliers)]
 
     def record(self, validated: list[tuple[Path, dict]]) -> None:
         """Log finished validations; the best candidate so far becomes policy.pt."""
@@ -260,7 +272,7 @@ class Trainer:
         decision, and broadcasts its weights every ``actors.broadcast_every`` updates."""
         from exit_decision.learning.actors import ActorPool
         pool = ActorPool(self.config, self.algorithm, self.validation_modes[0], self.action_space,
-                         self.shape.to_dict(), self.seed, count, address)
+                         self.shape.to_dict(), self.seed, count, address, self.checkpoints.description.get('prior'))
         broadcast_every = self.training.actors.broadcast_every
         dispatched = [self.state.episode]
 

@@ -101,7 +101,9 @@ def validate_checkpoint(task: ValidationTask, path: Path, env=None) -> dict[str,
             'capped': float(sum(e['steps'] >= max_steps for e in run.episodes)),
             'return': float(own.mean()), 'teacher_return': float(np.mean([e['reward'] for e in theirs])),
             'teacher_p_CAV': float(np.nanmean([e['p_CAV'] for e in theirs])),
-            'gain': gain, 'gain_low': low, 'gain_high': high}
+            'gain': gain, 'gain_low': low, 'gain_high': high,
+            # over options with a prior: the share of options begun that are not the prior's
+            'departures': run.result.departures / run.result.choices if run.result.choices else float('nan')}
     return out
 
 

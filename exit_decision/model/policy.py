@@ -48,9 +48,14 @@ def q_values(network: GraphQNetwork, graph: TrafficGraph, weights: np.ndarray | 
 
 
 class GraphPolicy:
-    def __init__(self, path: Path, network: GraphQNetwork, metadata: dict[str, Any]):
+    """A checkpoint's network (or, for a policy anchored on its prior, ``driving.anchored``, its
+    ensemble's ``members``: the first is ``network``) with its metadata."""
+
+    def __init__(self, path: Path, network: GraphQNetwork, metadata: dict[str, Any],
+                 members: tuple[GraphQNetwork, ...] = ()):
         self.path = path
         self.network = network.eval()
+        self.members = (self.network, *(member.eval() for member in members))
         self.metadata = metadata
         self.action_space = metadata.get('action_space', 'grid')
         self.grid = ActionGrid(ActionGridConfig(**metadata['action_grid']))
@@ -110,6 +115,12 @@ class GraphPolicy:
         ``weights``: the mode's, for a conditioned policy (``PolicyController`` checks them)."""
         return q_values(self.network, self.encoder.encode(graph, snapshot), weights)
 
+    def member_q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot,
+                        weights: np.ndarray | None = None) -> np.ndarray:
+        """(K, N, A) every member's Q values (the graph encoded once)."""
+        encoded = self.encoder.encode(graph, snapshot)
+        return np.stack([q_values(member, encoded, weights) for member in self.members])
+
 
 def load_policy(path: Path | str) -> GraphPolicy:
     """The checkpoint at ``path``; PolicyError, naming the path, for one that is missing,
@@ -127,9 +138,11 @@ def load_policy(path: Path | str) -> GraphPolicy:
     if action_space not in ACTION_SPACES:
         raise PolicyError(f'{path}: action space {action_space!r} is not known; known: {", ".join(ACTION_SPACES)}')
     try:
-        network = GraphQNetwork(NetworkShape(**data['network']))
-        network.load_state_dict(data['state_dict'])
-        return GraphPolicy(path, network, data['metadata'])
+        networks = []
+        for state_dict in (data['state_dict'], *data.get('members', ())):
+            networks.append(GraphQNetwork(NetworkShape(**data['network'])))
+            networks[-1].load_state_dict(state_dict)
+        return GraphPolicy(path, networks[0], data['metadata'], tuple(networks[1:]))
     except (KeyError, TypeError, ValueError, RuntimeError, ConfigError) as error:
         raise PolicyError(f'{path}: checkpoint content does not fit ({error})') from None
 
