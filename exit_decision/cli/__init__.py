@@ -27,7 +27,7 @@ DESCRIPTION = ('Graph RL highway-exit decisions for CAVs (SUMO + ROS 2): the pro
 EXAMPLES = '''examples:
   # the main job (scripts/main): the ROS 2 stack drives an episode, switches AGGP to CONP, records a bag
   exit-decision stack
-  # that bag's episodes: a time-space diagram and a bird's-eye clip (its path is the last line stack prints)
+  # that bag's episodes: a time-space diagram and a bird's-eye clip (its path is on the line stack prints after the metrics: bag: ...)
   exit-decision show bags/exit_decision_<time>
   # episodes without ROS and without a policy: the metrics table
   exit-decision run --episodes 3

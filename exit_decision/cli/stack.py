@@ -47,7 +47,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     """The whole ROS 2 stack in separate processes: an episode, a mode switch, a bag."""
     from datetime import datetime
 
-    from exit_decision.evaluation.metrics import markdown_table, summarize
+    from exit_decision.evaluation import main_job
     from exit_decision.ros.stack.launcher import free_bag_path, run_stack
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
@@ -66,30 +66,46 @@ def cmd_stack(args: argparse.Namespace) -> int:
     modes = [] if args.algorithm in SHIPPED_ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
+    log_dir = Path('runs') / 'stack_logs' / stamp
+    print(f'the stack: {args.algorithm} in {mode}' + (f', switched to {switch_to} at step {args.switch_at}' if switch_to
+                                                        else '') +
+          f', seed {args.seed}, {args.episodes or "episodes until stopped"}' + (' episode(s)' if args.episodes else ''),
+          flush=True)
     run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
-                    bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
+                    bag_path=bag, log_dir=log_dir,
                     switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
                     visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
-                    cpu_split=not args.no_cpu_split, compression=args.compression)
+                    cpu_split=not args.no_cpu_split, compression=args.compression,
+                    say=lambda line: print(line, flush=True), step_length=config.scenario.step_length)
+    print()
     if run.stopped_by:
         print(f'stopped by {run.stopped_by}: {len(run.episodes)} episode(s) finished; the nodes stopped')
-    if run.mode_switch:
-        print(run.mode_switch)
-    elif switch_to:
-        print(f'no mode switch: the first episode did not reach step {args.switch_at}')
     if run.episodes:
-        switched = run.mode_switch.endswith('accepted')
-        label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switched else '')
-        print(markdown_table([(label, summarize(run.episodes))]))
-        if switched:   # what the switch changed, beside the same seed without it
-            from exit_decision.model.names import default_policy_dir
-            from exit_decision.ros.bags.switch import switch_report
-            print(switch_report(bag, config, Path(args.policy_dir) if args.policy_dir else default_policy_dir(),
-                                args.algorithm, args.seed))
+        label = f'{args.algorithm}, {mode}' + (f' -> {switch_to}' if run.mode_switch.endswith('accepted') else '')
+        print('\n'.join(main_job.metrics_lines(run.episodes, config.scenario.emergency_braking_threshold, label)))
     else:
-        print('no episode finished' + ('' if run.stopped_by else ' (see the logs)'))
+        print('no episode finished' + ('' if run.stopped_by else f' (see the nodes\' logs in {log_dir}/)'))
+    if switch_to and not run.mode_switch:
+        print(f'no mode switch: the first episode did not reach step {args.switch_at}')
+    elif run.mode_switch and not run.mode_switch.endswith('accepted'):
+        print(f'the mode switch was not made: {run.mode_switch}')
+    elif run.mode_switch and run.episodes:   # what the switch changed, beside the same seed without it
+        from exit_decision.model.names import default_policy_dir
+        from exit_decision.ros.bags.switch import switch_outcome
+        outcome = switch_outcome(bag, config, Path(args.policy_dir) if args.policy_dir else default_policy_dir(),
+                                 args.algorithm, args.seed)
+        if outcome is None:
+            print(f'the bag\'s decisions keep one mode: the switch ({run.mode_switch}) did not land in it')
+        else:
+            timing = main_job.SwitchTiming(run.switch.asked, run.switch.requested, outcome.switch.step,
+                                           config.env.decision_interval, config.scenario.step_length)
+            print(main_job.timing_line(mode, switch_to, timing))
+            print(main_job.returns_line(outcome))
+            print(main_job.verdict_line(outcome))
+            print(main_job.consistency_line(outcome))
     print(f'bag: {bag}')
+    print('\n'.join(main_job.next_lines(bag, log_dir)))
     failed = {name: code for name, code in run.return_codes.items() if code not in (0, -2, -9)}
     if failed:
         print(f'nodes that failed: {failed}', file=sys.stderr)
