@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 from exit_decision.config.seeds import TEST_SEED
-from exit_decision.cli.arguments import SEED, STEP, OptionError, existing, known, known_algorithm, new_path, number
+from exit_decision.cli.arguments import (SEED, STEP, OptionError, Replaced, existing, known, known_algorithm, new_path,
+                                         number, renamed)
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
 from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
@@ -43,6 +44,25 @@ def check_thread_priority(priority: int) -> None:
         raise UsageError(f'--thread-priority {reason}')
 
 
+def stack_policy(reference: str | None, policy_dir: Path | None) -> tuple[Path | None, str]:
+    """(policy_dir, algorithm) the decision node takes for ``--policy``: a directory name under
+    policies/ (or under the old ``--policy-dir``), the path of a policy directory or of its
+    policy.pt (a directory named as its algorithm), or a per-mode method's name (gqn, mdgqn: its
+    <name>_<mode>/ directories); ``None``: the shipped policy."""
+    if reference is None:
+        return policy_dir, DEFAULT_ALGORITHM
+    path = policy_dir / reference if policy_dir else Path(reference)
+    if path.is_file():
+        path = path.parent
+    if (path / 'policy.pt').is_file():
+        return path.parent, path.name
+    if len(Path(reference).parts) == 1:   # a name: of the shipped policies/ (or --policy-dir), or a per-mode method
+        return policy_dir, reference
+    raise OptionError(f'argument --policy: {reference!r}: no policy.pt in {path}; allowed: a directory name under '
+                      f'policies/, a per-mode method ({", ".join(a for a in SHIPPED_ALGORITHMS if "_" not in a)}), or '
+                      f'the path of a policy directory or of its policy.pt')
+
+
 def cmd_stack(args: argparse.Namespace) -> int:
     """The whole ROS 2 stack in separate processes: an episode, a mode switch, a bag."""
     from datetime import datetime
@@ -53,10 +73,11 @@ def cmd_stack(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     check_thread_priority(args.thread_priority)
     matrix = config.mode_matrix
-    known_algorithm(args.algorithm, config)
-    mode = args.mode or matrix.aggressive.punished
+    args.policy_dir, args.algorithm = stack_policy(args.policy, args.policy_dir)
+    known_algorithm(args.algorithm, config, '--policy')
+    mode = args.start_mode or matrix.aggressive.punished
     switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
-    known('--mode', mode, config.mode)
+    known('--start-mode', mode, config.mode)
     if switch_to:
         known('--switch-to', switch_to, config.mode)
         if args.switch_at >= config.scenario.max_steps:
@@ -120,12 +141,12 @@ STACK_EXAMPLES = '''examples:
   # the main job (scripts/main): the shipped policy, AGGP switched to CONP at step 300, seed 10000, a bag in bags/
   exit-decision stack
   # another start mode, switch and seed, into a bag of a chosen name; then its diagrams and clip
-  exit-decision stack --mode CONI --switch-to AGGI --switch-at 200 --seed 10001 --bag bags/coni_to_aggi
+  exit-decision stack --start-mode CONI --switch-to AGGI --switch-at 200 --seed 10001 --bag bags/coni_to_aggi
   exit-decision show bags/coni_to_aggi
   # no switch, no visualizer, episodes until Ctrl-C
   exit-decision stack --switch-to "" --no-visualizer --episodes 0
   # the conditioned MDGQN on the 81-action grid instead
-  exit-decision stack --algorithm mdgqn_conditioned
+  exit-decision stack --policy mdgqn_conditioned
 '''
 
 
@@ -138,17 +159,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                                    epilog=STACK_EXAMPLES)
     stack.add_argument('--config-dir', type=existing('dir'), default=None,
                        help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
-    stack.add_argument('--mode', default=None,
-                       help='decision mode at start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
+    start_mode = stack.add_argument(
+        '--start-mode', default=None,
+        help='decision mode at the start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
+    renamed(stack, '--mode', start_mode)
     stack.add_argument('--switch-to', default=None,
                        help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
                             'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=STEP, default=300,
                        help='step of the first episode to switch at, below the scenario\'s max_steps')
-    stack.add_argument('--algorithm', default=DEFAULT_ALGORITHM,
-                       help='a learned method of config/training.yaml (<method>[_options][_conditioned]: over options; '
-                            f'one network for every mode); shipped: {", ".join(SHIPPED_ALGORITHMS)} (others: '
-                            '--policy-dir with <algorithm>_<mode>/policy.pt)')
+    policy = stack.add_argument(
+        '--policy', default=None,
+        help='the policy the decision node runs: a directory name under policies/ (shipped: '
+             f'{", ".join(a for a in SHIPPED_ALGORITHMS if "_" in a)}), a per-mode method whose <name>_<mode>/ '
+             'directories are there (gqn, mdgqn), or the path of a policy directory or of its policy.pt (a '
+             f'directory named as its algorithm, <method>[_options][_conditioned]); default: {DEFAULT_ALGORITHM}')
+    renamed(stack, '--algorithm', policy)
+    stack.add_argument('--policy-dir', action=Replaced, type=existing('dir'), default=None,
+                       hint='give --policy DIR/<name> (a policy directory\'s path)')
     stack.add_argument('--episodes', type=number(int, 0), default=1,
                        help='episodes to run; 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
                             'finish the bag)')
@@ -159,9 +187,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        default=STACK_ARGUMENTS['compression'].default,
                        help='mcap chunk compression of the bag (default: %(default)s; one episode of the shipped '
                             'scenario, 80 s simulated: none 3.55 MB, zstd 0.49 MB)')
-    stack.add_argument('--policy-dir', type=existing('dir'), default=None,
-                       help='directory of the policies, <algorithm>[_<mode>]/policy.pt (default: the shipped '
-                            'policies/)')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     thread_priority_option(stack)
