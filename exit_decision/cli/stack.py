@@ -88,10 +88,9 @@ def cmd_stack(args: argparse.Namespace) -> int:
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
     log_dir = Path('runs') / 'stack_logs' / stamp
-    print(f'the stack: {args.algorithm} in {mode}' + (f', switched to {switch_to} at step {args.switch_at}' if switch_to
-                                                        else '') +
-          f', seed {args.seed}, {args.episodes or "episodes until stopped"}' + (' episode(s)' if args.episodes else ''),
-          flush=True)
+    episodes = {0: 'episodes until stopped', 1: '1 episode'}.get(args.episodes, f'{args.episodes} episodes')
+    switching = f', switching to {switch_to} at step {args.switch_at}' if switch_to else ''
+    print(f'the stack: {args.algorithm} in {mode}{switching}, seed {args.seed}, {episodes}', flush=True)
     run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
                     bag_path=bag, log_dir=log_dir,
                     switch_to=switch_to, switch_at_step=args.switch_at,
