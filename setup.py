@@ -15,6 +15,7 @@ setup(
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.xml')),
         ('share/' + PACKAGE + '/config/sros2', glob('config/sros2/*.xml')),   # docs/ros.md, "Who may publish"
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+        ('share/' + PACKAGE + '/rviz', glob('rviz/*.rviz')),   # the launch file's rviz:=true
     ] + [('share/' + PACKAGE + '/' + directory, [directory + '/policy.pt'])
          for directory in sorted(glob('policies/*')) if glob(directory + '/policy.pt')],
     install_requires=['setuptools'],

@@ -30,12 +30,12 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
 BAD = [
-    ['run', '--episodes', '0'], ['run', '--episodes', '-3'], ['run', '--seed', '-1'], ['run', '--mode', 'NOPE'],
-    ['run', '--driver', 'nobody'], ['run', '--variant', 'NOPE'], ['run', '--config-dir', 'MISSING'],
+    ['run', '--episodes', '0'], ['run', '--episodes', '-3'], ['run', '--seed', '-1'], ['run', '--score-mode', 'NOPE'], ['run', '--mode', 'NOPE'],
+    ['run', '--driver', 'nobody'], ['run', '--scenario-variant', 'NOPE'], ['run', '--variant', 'NOPE'], ['run', '--config-dir', 'MISSING'],
     ['run', '--scenario-override', 'MISSING'], ['run', '--override', 'MISSING'],
-    ['train', '--algorithm', 'NOPE'], ['train', '--mode', 'NOPE'], ['train', '--episodes', '0'],
+    ['train', '--algorithm', 'NOPE'], ['train', '--conditioning', 'NOPE'], ['train', '--mode', 'NOPE'], ['train', '--episodes', '0'],
     ['train', '--seed', '-1'], ['train', '--resume', NOT_CHECKPOINT], ['train', '--resume', 'MISSING'],
-    ['train', '--init', NOT_CHECKPOINT], ['train', '--action-space', 'nope'], ['train', '--reward-variant', 'NOPE'],
+    ['train', '--init', NOT_CHECKPOINT], ['train', '--init', 'NOPE'], ['train', '--action-space', 'nope'], ['train', '--reward-variant', 'NOPE'],
     ['train', '--actors', '-1'],
     ['anchor', '--policy', 'MISSING'], ['anchor', '--policy', NOT_CHECKPOINT], ['anchor', '--kappa', '-1'],
     ['anchor', '--margin', 'x'], ['anchor', '--episodes', '0'], ['anchor', '--jobs', '0'],
@@ -44,11 +44,12 @@ BAD = [
     ['evaluate', '--driver', 'rule_based', '--episodes', '0'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '-3'],
     ['evaluate', '--seed', '-1'], ['evaluate', '--policy', NOT_CHECKPOINT], ['evaluate', '--policy', 'MISSING'],
-    ['evaluate', '--driver', 'nobody'], ['evaluate', '--driver', 'rule_based', '--mode', 'NOPE'],
+    ['evaluate', '--driver', 'nobody'], ['evaluate', '--driver', 'rule_based', '--score-mode', 'NOPE'],
+    ['evaluate', '--driver', 'rule_based', '--mode', 'NOPE'], ['evaluate', '--policy', 'NOPE'],
     ['evaluate', '--show', '-1'],
-    ['stack', '--mode', 'NOPE'], ['stack', '--switch-to', 'NOPE'], ['stack', '--switch-at', '-5'],
-    ['stack', '--switch-at', '1500'], ['stack', '--algorithm', 'NOPE'], ['stack', '--episodes', '-1'],
-    ['stack', '--seed', '-1'], ['stack', '--bag', 'EXISTING'], ['stack', '--policy-dir', 'MISSING'],
+    ['stack', '--start-mode', 'NOPE'], ['stack', '--mode', 'NOPE'], ['stack', '--switch-to', 'NOPE'], ['stack', '--switch-at', '-5'],
+    ['stack', '--switch-at', '1500'], ['stack', '--policy', 'NOPE'], ['stack', '--policy', 'MISSING'], ['stack', '--algorithm', 'NOPE'], ['stack', '--episodes', '-1'],
+    ['stack', '--seed', '-1'], ['stack', '--bag', 'EXISTING'], ['stack', '--policy-dir', 'MISSING'], ['stack', '--policy-dir', 'EXISTING', '--policy', 'NOPE'],
     ['stack', '--config-dir', 'MISSING'], ['stack', '--compression', 'gzip'], ['stack', '--thread-priority', '100'],
     ['replay', 'MISSING'], ['replay', FIXTURE_BAG, '--mode', 'NOPE'], ['replay', FIXTURE_BAG, '--algorithm', 'NOPE'],
     ['replay', FIXTURE_BAG, '--policy', NOT_CHECKPOINT], ['replay', FIXTURE_BAG, '--policy-dir', 'MISSING'],
@@ -56,23 +57,23 @@ BAD = [
     ['show', 'MISSING'], ['show', FIXTURE_BAG, '--episode', '-1'], ['show', FIXTURE_BAG, '--start', '-1'],
     ['show', FIXTURE_BAG, '--end', '-1'], ['show', FIXTURE_BAG, '--speed', '0'], ['show', FIXTURE_BAG, '--fps', '0'],
     ['show', FIXTURE_BAG, '--config-dir', 'MISSING'],
-    ['ablation', '--algorithm', 'NOPE'], ['ablation', '--mode', 'NOPE'], ['ablation', '--episodes', '0'],
+    ['ablation', '--algorithm', 'NOPE'], ['ablation', '--score-mode', 'NOPE'], ['ablation', '--mode', 'NOPE'], ['ablation', '--episodes', '0'],
     ['ablation', '--test-episodes', '0'], ['ablation', '--seed', '-1'], ['ablation', '--test-seed', '-1'],
-    ['ablation', '--only', '99'], ['ablation', '--only', '-1'], ['ablation', '--config-dir', 'MISSING'],
-    ['reward-sanity', '--sweep', 'MISSING'], ['reward-sanity', '--variant', 'NOPE'],
+    ['ablation', '--only', '99'], ['ablation', '--only', '1', '99'], ['ablation', '--only', '-1'], ['ablation', '--config-dir', 'MISSING'],
+    ['reward-sanity', '--sweep', 'MISSING'], ['reward-sanity', '--reward-variant', 'NOPE'], ['reward-sanity', '--variant', 'NOPE'],
     ['reward-sanity', '--low-level', 'nope'], ['reward-sanity', '--episodes', '0'], ['reward-sanity', '--seed', '-1'], ['reward-sanity', '--jobs', '0'],
     ['options-table', '--episodes', '0'], ['options-table', '--seed', '-1'], ['options-table', '--jobs', '0'],
-    ['options-table', '--config-dir', 'MISSING'], ['options-table', '--variant', 'NOPE'],
+    ['options-table', '--config-dir', 'MISSING'], ['options-table', '--reward-variant', 'NOPE'], ['options-table', '--variant', 'NOPE'],
     ['options-table', '--policy', NOT_CHECKPOINT], ['options-table', '--policy', 'MISSING'],
     ['tradeoff', '--policy', NOT_CHECKPOINT], ['tradeoff', '--policy', 'MISSING'], ['tradeoff', '--episodes', '0'],
     ['tradeoff', '--seed', '-1'],
-    ['plot', '--runs', 'MISSING'], ['plot', '--evaluation', 'MISSING'],
-    ['report', '--evaluation', 'MISSING'], ['report', '--runs', 'MISSING'], ['report', '--sanity', 'MISSING'],
+    ['plot', '--policy', 'MISSING'], ['plot', '--runs', 'MISSING'], ['plot', '--runs', 'EXISTING', 'MISSING'], ['plot', '--evaluation', 'MISSING'],
+    ['report', '--evaluation', 'MISSING'], ['report', '--policy', 'MISSING'], ['report', '--runs', 'MISSING'], ['report', '--sanity', 'MISSING'],
     ['report', '--config-dir', 'MISSING'], ['report', '--tradeoff', 'MISSING'], ['report', '--figures', 'MISSING'],
     ['report', '--options-table', 'MISSING'], ['report', '--readme', 'MISSING'],
-    ['compare', '--method', 'nobody'], ['compare', '--method', NOT_CHECKPOINT], ['compare', '--variant', 'NOPE'],
-    ['compare', '--variants', 'MISSING'], ['compare', '--train', 'NOPE'], ['compare', '--training', 'MISSING'],
-    ['compare', '--mode', 'NOPE'], ['compare', '--episodes', '0'], ['compare', '--seed', '-1'],
+    ['compare', '--method', 'nobody'], ['compare', '--method', NOT_CHECKPOINT], ['compare', '--scenario-variant', 'NOPE'], ['compare', '--variant', 'NOPE'],
+    ['compare', '--scenario-variants', 'MISSING'], ['compare', '--variants', 'MISSING'], ['compare', '--train', 'NOPE'], ['compare', '--training', 'MISSING'],
+    ['compare', '--score-mode', 'NOPE'], ['compare', '--mode', 'NOPE'], ['compare', '--episodes', '0'], ['compare', '--seed', '-1'],
     ['compare', '--workers', '0'], ['compare', '--retries', '-1'], ['compare', '--override', 'MISSING'],
     ['compare', '--config-dir', 'MISSING'],
     ['bench', 'nope'], ['bench', '--steps', '0'], ['bench', '--episodes', '0'], ['bench', '--seed', '-1'],
@@ -124,3 +125,64 @@ def test_every_option_that_takes_a_value_has_a_bad_one_in_the_table():
                   if action.option_strings and action.nargs != 0}
         unchecked = sorted(option for option in taking - FREE - common - {'--help'} if (name, option) not in checked)
         assert not unchecked, f'{name}: options with no bad value in BAD: {unchecked}'
+
+
+#: (old spelling, new spelling): the same values, the old with a note (issue 41, one vocabulary)
+RENAMED = [
+    (['stack', '--mode', 'CONI'], ['stack', '--start-mode', 'CONI']),
+    (['stack', '--algorithm', 'gqn'], ['stack', '--policy', 'gqn']),
+    (['run', '--mode', 'CONI', '--variant', 'density_1.45'], ['run', '--score-mode', 'CONI', '--scenario-variant', 'density_1.45']),
+    (['evaluate', '--mode', 'AGGP', '--mode', 'CONP'], ['evaluate', '--score-mode', 'AGGP', '--score-mode', 'CONP']),
+    (['train', '--mode', 'CONP'], ['train', '--conditioning', 'CONP']),
+    (['ablation', '--mode', 'CONP', '--only', '1', '2'], ['ablation', '--score-mode', 'CONP', '--only', '1', '--only', '2']),
+    (['reward-sanity', '--variant', 'headway'], ['reward-sanity', '--reward-variant', 'headway']),
+    (['options-table', '--variant', 'headway', '--variant', 'calibrated'],
+     ['options-table', '--reward-variant', 'headway', '--reward-variant', 'calibrated']),
+    (['compare', '--variant', 'base', '--variants', 'config/variants.yaml', '--mode', 'CONP'],
+     ['compare', '--scenario-variant', 'base', '--scenario-variants', 'config/variants.yaml', '--score-mode', 'CONP']),
+    (['report', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP'],
+     ['report', '--policy', 'policies/gqn_AGGP', '--policy', 'policies/mdgqn_AGGP']),
+    (['plot', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP'],
+     ['plot', '--policy', 'policies/gqn_AGGP', '--policy', 'policies/mdgqn_AGGP']),
+]
+
+
+@pytest.mark.parametrize('old, new', RENAMED, ids=[' '.join(old) for old, _ in RENAMED])
+def test_an_old_spelling_gives_what_the_new_one_gives_with_a_note(old, new, monkeypatch):
+    monkeypatch.chdir(REPO)
+    parsed_old, parsed_new = (vars(build_parser().parse_args(argv)) for argv in (old, new))
+    notes = parsed_old.pop('notes')
+    assert parsed_old == parsed_new and 'notes' not in parsed_new
+    assert notes and all(' is now ' in text or 'once per value' in text for text in notes)
+
+
+def test_a_policy_is_its_name_under_policies_or_a_path(monkeypatch):
+    """evaluate, train (--init), options-table, tradeoff: the same checkpoint by its directory's
+    name, its directory's path or its own path."""
+    monkeypatch.chdir(REPO)
+    checkpoint = (REPO / 'policies' / 'mdgqn_conditioned' / 'policy.pt').resolve()
+    for given in ('mdgqn_conditioned', 'policies/mdgqn_conditioned', 'policies/mdgqn_conditioned/policy.pt'):
+        for argv, dest in ((['evaluate', '--policy', given], 'policy'), (['train', '--init', given], 'init'),
+                           (['options-table', '--policy', given], 'policy'), (['tradeoff', '--policy', given], 'policy')):
+            value = getattr(build_parser().parse_args(argv), dest)
+            assert (value[0] if isinstance(value, list) else value).resolve() == checkpoint, argv
+
+
+def test_the_stack_takes_a_policy_by_name_or_path_and_the_old_algorithm_and_policy_dir():
+    from exit_decision.cli.stack import stack_policy
+    policies = REPO / 'policies'
+    assert stack_policy(None, None) == (None, 'mdgqn_options_conditioned')
+    assert stack_policy('mdgqn_conditioned', None) == (None, 'mdgqn_conditioned')
+    assert stack_policy(str(policies / 'mdgqn_conditioned'), None) == (policies, 'mdgqn_conditioned')
+    assert stack_policy(str(policies / 'mdgqn_conditioned' / 'policy.pt'), None) == (policies, 'mdgqn_conditioned')
+    assert stack_policy('gqn', policies) == (policies, 'gqn'), 'a per-mode method: its <name>_<mode>/ directories'
+
+
+def test_an_old_spelling_notes_its_new_one_on_stderr_after_the_command(monkeypatch, capsys):
+    import exit_decision.evaluation.plots as plots
+    monkeypatch.setattr(plots, 'make_all', lambda runs, evaluation, out: [f'{len(runs)} runs'])
+    monkeypatch.chdir(REPO)
+    assert main(['plot', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP', '--out', 'runs/never']) == 0
+    out, err = capsys.readouterr()
+    assert out == '2 runs\n'
+    assert err == 'exit-decision plot: note: --runs is now --policy; the old spelling still works, for now\n'

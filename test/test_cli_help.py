@@ -10,7 +10,7 @@ from xml.etree import ElementTree
 import pytest
 
 from exit_decision.cli import build_parser
-from exit_decision.cli.arguments import HelpFormatter, shown_default
+from exit_decision.cli.arguments import HelpFormatter, OldSpelling, shown_default
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -28,9 +28,11 @@ PARSERS = list(walk(build_parser()))
 
 
 def arguments(parser: argparse.ArgumentParser):
-    """The options and positional arguments a user gives (not -h/--help, --version, a command)."""
+    """The options and positional arguments a user gives (not -h/--help, --version, a command, nor
+    an old spelling, hidden from --help: test_cli_arguments.py holds those)."""
     return [action for action in parser._actions
-            if not isinstance(action, (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction))]
+            if not isinstance(action, (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction,
+                                       OldSpelling))]
 
 
 def rendered_help(parser: argparse.ArgumentParser, action: argparse.Action) -> str:

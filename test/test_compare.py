@@ -67,8 +67,8 @@ def test_compare_writes_a_csv_per_cell_reports_a_failing_cell_and_a_rerun_skips_
     variants, override, out = tmp_path / 'variants.yaml', tmp_path / 'graph.yaml', tmp_path / 'out'
     variants.write_text(yaml.safe_dump({'cells': {'tiny': TINY, 'overfull': OVERFULL}}))
     override.write_text(yaml.safe_dump({'graph': {'max_vehicles': 12}}))
-    command = ['compare', '--variants', str(variants), '--override', str(override), '--method', 'rule_based',
-               '--method', 'sumo', '--mode', 'AGGP', '--mode', 'CONP', '--episodes', '2', '--out', str(out),
+    command = ['compare', '--scenario-variants', str(variants), '--override', str(override), '--method', 'rule_based',
+               '--method', 'sumo', '--score-mode', 'AGGP', '--score-mode', 'CONP', '--episodes', '2', '--out', str(out),
                '--workers', '2', '--retries', '0']
     assert main(command) == 1
     printed = capsys.readouterr().out
@@ -84,7 +84,7 @@ def test_compare_writes_a_csv_per_cell_reports_a_failing_cell_and_a_rerun_skips_
     assert not list((out / 'overfull').glob('*.csv'))
     stamps = {path: path.stat().st_mtime_ns for path in (out / 'tiny').iterdir()}
 
-    assert main([*command, '--variant', 'tiny']) == 0
+    assert main([*command, '--scenario-variant', 'tiny']) == 0
     assert '2 cells: 0 run now, 2 already done (skipped), 0 failed' in capsys.readouterr().out
     assert {path: path.stat().st_mtime_ns for path in (out / 'tiny').iterdir()} == stamps
     assert '## tiny' in (out / 'comparison.md').read_text()
@@ -100,8 +100,8 @@ def test_compare_trains_a_learned_method_on_a_budget_of_steps_and_reports_it_wit
         'demonstrations': {'episodes': 1, 'pretrain_updates': 20},
         'validation': {'every_episodes': 2, 'episodes': 1, 'parallel': False}}}))
     policies = tmp_path / 'policies'
-    command = ['compare', '--variants', str(variants), '--override', str(override), '--train', 'dqn',
-               '--training', str(training), '--mode', 'CONP', '--episodes', '2', '--out', str(out),
+    command = ['compare', '--scenario-variants', str(variants), '--override', str(override), '--train', 'dqn',
+               '--training', str(training), '--score-mode', 'CONP', '--episodes', '2', '--out', str(out),
                '--policies', str(policies), '--workers', '2', '--retries', '0']
     assert main(command) == 0
     assert 'training: 1 training runs: 1 run now' in capsys.readouterr().out
@@ -113,7 +113,7 @@ def test_compare_trains_a_learned_method_on_a_budget_of_steps_and_reports_it_wit
     page = (out / 'comparison.md').read_text()
     assert '| dqn |' in page and 'dqn > rule_based (learned > rule-based)' in page
     assert 'the same budget of environment steps (100 RL decisions a run' in page
-    assert f'Made by `exit-decision compare --variants {variants} ' in page, 'the command as given, not pytest\'s'
+    assert f'Made by `exit-decision compare --scenario-variants {variants} ' in page, 'the command as given, not pytest\'s'
     timing = json.loads((out / 'training' / 'dqn_s0' / 'timing.json').read_text())
     assert timing['decisions'] >= 100 and timing['episodes'] < 50, 'the steps budget ends the RL phase'
     assert (out / 'comparison_learning_curves.png').stat().st_size > 0
@@ -161,11 +161,11 @@ def test_a_drop_under_a_variant_is_paired_by_test_seed_and_marked_when_resolved(
 
 
 def test_run_on_a_variant_says_its_peak_of_vehicles_against_the_graphs_capacity(capsys):
-    assert main(['run', '--variant', 'length_0.5', '--episodes', '1', '--seed', '10000']) == 0
+    assert main(['run', '--scenario-variant', 'length_0.5', '--episodes', '1', '--seed', '10000']) == 0
     peak = int(re.search(r'peak vehicles on the road at one step: (\d+) \(the graph holds N = 60\)',
                          capsys.readouterr().out).group(1))
     assert 0 < peak <= 60
-    assert main(['run', '--variant', 'length_0.1']) != 0
+    assert main(['run', '--scenario-variant', 'length_0.1']) != 0
     assert "no cell 'length_0.1'; cells: base, politeness_0.4" in capsys.readouterr().err
 
 

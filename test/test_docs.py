@@ -429,7 +429,7 @@ BROKEN = """\
 # A page with mistakes
 
 Run `exit-decision stack --no-such-option` or `exit-decision bench ros --stepz 10`; a span can wrap: `exit-decision
-run --variant density_1.45 --no-such-option`.
+run --scenario-variant density_1.45 --no-such-option`.
 
 ```bash
 exit-decision nosuch --episodes 1
@@ -457,7 +457,7 @@ See [the design](design.md#learning), [a missing page](missing.md) and
 CORRECT = """\
 # A page without mistakes
 
-`exit-decision` alone, `exit-decision <command> --help`, `exit-decision stack --mode CONI --no-visualizer`.
+`exit-decision` alone, `exit-decision <command> --help`, `exit-decision stack --start-mode CONI --no-visualizer`.
 
 ```console
 $ python -m exit_decision bench ros --steps 10 [--no-cpu-split | --thread-priority 10]
@@ -504,7 +504,7 @@ def test_the_checks_find_each_kind_of_mistake_and_name_its_file_and_line(tmp_pat
     expected = [
         (3, '`exit-decision stack --no-such-option`: exit-decision stack has no option --no-such-option'),
         (3, '`exit-decision bench ros --stepz 10`: exit-decision bench has no option --stepz'),
-        (3, '`exit-decision run --variant density_1.45 --no-such-option`: exit-decision run has no option '
+        (3, '`exit-decision run --scenario-variant density_1.45 --no-such-option`: exit-decision run has no option '
             '--no-such-option'),
         (7, "exit-decision has no command 'nosuch'"),
         (8, "exit-decision fixture has no command 'nosuch'"),

@@ -54,6 +54,6 @@ def test_invalid_config_fails_with_the_key_and_exit_code_2(tmp_path):
 
 
 def test_unknown_mode_is_refused_with_the_known_ones():
-    result = cli('run', '--mode', 'FAST')
+    result = cli('run', '--score-mode', 'FAST')
     assert result.returncode == 2
     assert "unknown mode 'FAST'" in result.stderr and 'AGGI' in result.stderr

@@ -145,9 +145,10 @@ def environment(install) -> dict[str, str]:
 
 def test_the_package_config_and_policies_come_from_the_install(install, bare_python, environment):
     code = ('import sys, exit_decision, exit_decision_msgs\n'
-            'from exit_decision.config import default_config_dir\n'
+            'from exit_decision.config import default_config_dir, default_rviz_config\n'
             'from exit_decision.model.names import default_policy_dir\n'
-            'print(exit_decision.__file__, exit_decision_msgs.__file__, default_config_dir(), default_policy_dir())\n'
+            'print(exit_decision.__file__, exit_decision_msgs.__file__, default_config_dir(), default_policy_dir(),\n'
+            '      default_rviz_config())\n'
             'print(sys.prefix)')
     result = subprocess.run([str(bare_python), '-c', code], env=environment, capture_output=True, text=True,
                             timeout=120, cwd=install.parent, check=False)
@@ -155,6 +156,7 @@ def test_the_package_config_and_policies_come_from_the_install(install, bare_pyt
     paths, prefix = result.stdout.split('\n')[:2]
     for path in paths.split():
         assert Path(path).is_relative_to(install), f'{path} is not from {install}'
+    assert Path(paths.split()[-1]).is_file(), 'the launch file\'s rviz:=true view is installed'
     assert not (Path(prefix) / 'share' / 'exit_decision').exists()
 
 

@@ -96,6 +96,25 @@ def test_the_launch_file_starts_as_the_stack_command_does_and_a_second_run_gets_
         plan({'compression': 'gzip'})
 
 
+def test_rviz_true_also_starts_rviz2_with_the_shipped_view_and_its_exit_ends_nothing(monkeypatch):
+    """rviz:=true: the table's nodes as without it, and rviz2 on the shipped config of the markers
+    (rviz/exit_decision.rviz, installed to share/exit_decision/rviz by setup.py); off by default."""
+    from exit_decision.config import default_rviz_config
+
+    assert ARGUMENTS['rviz'].default == 'false'
+    _, without = launch_description(monkeypatch, {})
+    assert all(a.kwargs['package'] == 'exit_decision' for a in without)
+    _, actions = launch_description(monkeypatch, {'rviz': 'true'})
+    (viewer,) = [a for a in actions if a.kwargs['package'] == 'rviz2']
+    assert [(a.kwargs['executable'], a.kwargs['parameters'][0]) for a in actions if a is not viewer] == plan({})
+    config = Path(viewer.kwargs['arguments'][1])
+    assert viewer.kwargs['arguments'][0] == '-d' and config == default_rviz_config() and config.is_file()
+    assert 'on_exit' not in viewer.kwargs, 'closing RViz leaves the stack running'
+    text = config.read_text()
+    assert 'Fixed Frame: map' in text and 'Value: /exit_decision/markers' in text
+    assert "glob('rviz/*.rviz')" in (REPO / 'setup.py').read_text(), 'installed beside config/'
+
+
 def test_the_bridge_waits_for_every_state_listener_of_the_plan():
     full, without = plan({}), plan({'visualizer': False})
     assert [name for name, _ in full] == [node.executable for node in NODES] and full[-1][0] == BRIDGE
@@ -300,10 +319,11 @@ def test_one_shipped_policy_starts_everywhere_the_node_the_launch_file_and_the_s
     """`ros2 run exit_decision decision_node` (and graph_and_decision), the launch file and
     `exit-decision stack` all start on the shipped policy, one constant."""
     from exit_decision.cli import build_parser
+    from exit_decision.cli.stack import stack_policy
     from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
     from exit_decision.ros.parameters import start_algorithm
 
     stack = build_parser().parse_args(['stack'])
-    assert start_algorithm(list(SHIPPED_ALGORITHMS)) == ARGUMENTS['algorithm'].default == stack.algorithm \
-        == DEFAULT_ALGORITHM
+    assert start_algorithm(list(SHIPPED_ALGORITHMS)) == ARGUMENTS['algorithm'].default \
+        == stack_policy(stack.policy, None)[1] == DEFAULT_ALGORITHM
     assert start_algorithm(['gqn']) == 'gqn', 'another set of algorithms: the last loaded'

@@ -35,3 +35,16 @@ def test_episodes_cut_by_the_step_cap_are_counted_per_run(tmp_path):
     write_rows(tmp_path / 'comparison.csv', [{'steps': 1500.0}])
     assert step_cap_lines(tmp_path, 1500) == ['- mdgqn_conditioned_AGGI: 2 of 3 episodes ran into the 1500-step cap']
     assert step_cap_lines(tmp_path, 2000) == ['- none: no episode ran into the 2000-step cap']
+
+
+def test_the_speed_section_links_the_benchmarks_logs_instead_of_copying_them(tmp_path):
+    from exit_decision.evaluation.report import benchmark_lines
+    logs = tmp_path / 'results' / 'benchmarks.txt'
+    logs.parent.mkdir()
+    (tmp_path / 'performance.md').write_text('# Performance\n')
+    relative = lambda path: path.relative_to(tmp_path).as_posix()  # noqa: E731
+    assert benchmark_lines(logs, relative) == [], 'no logs, no section'
+    logs.write_text('$ exit-decision bench sim\nlibsumo 8209 steps/s\n')
+    text = '\n'.join(benchmark_lines(logs, relative))
+    assert '[`results/benchmarks.txt`](results/benchmarks.txt)' in text and '(performance.md)' in text
+    assert '8209' not in text and '```' not in text

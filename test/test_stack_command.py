@@ -64,8 +64,8 @@ def test_a_signal_stops_every_node_and_finishes_the_bag(setup, tmp_path, sig):
     config_dir = tmp_path / 'config'   # a path of its own: it names this run's nodes
     config_dir.symlink_to(setup['config_dir'], target_is_directory=True)
     bag = tmp_path / 'bag'
-    process = stack(tmp_path, config_dir, '--episodes', '0', '--policy-dir', str(setup['policies']),
-                    '--bag', str(bag))
+    process = stack(tmp_path, config_dir, '--episodes', '0', '--policy',
+                    str(setup['policies'] / 'mdgqn_options_conditioned'), '--bag', str(bag))
     try:
         deadline = time.monotonic() + 180
         # every node is up (recorder, graph_and_decision, visualizer, bridge) and states are recorded
@@ -90,9 +90,10 @@ def test_a_node_that_cannot_start_stops_the_others_and_the_command_says_why_in_o
     config_dir = tmp_path / 'config'
     config_dir.symlink_to(setup['config_dir'], target_is_directory=True)
     empty = tmp_path / 'no_policies'
-    empty.mkdir()
+    (empty / 'mdgqn_options_conditioned').mkdir(parents=True)
+    (empty / 'mdgqn_options_conditioned' / 'policy.pt').write_text('not a checkpoint')   # found, but cannot load
     bag = tmp_path / 'bag'
-    process = stack(tmp_path, config_dir, '--policy-dir', str(empty), '--bag', str(bag))
+    process = stack(tmp_path, config_dir, '--policy', str(empty / 'mdgqn_options_conditioned'), '--bag', str(bag))
     try:
         out, err = finish(process, 180)
     finally:

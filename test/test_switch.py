@@ -35,32 +35,29 @@ def test_no_leader_in_range_gives_no_headway():
 
 
 def test_the_stack_shows_the_recorded_switch_beside_the_same_seed_without_it():
-    """On the replay fixture (the shipped stack, AGGP -> CONP half-way): the report names the
+    """On the replay fixture (the shipped stack, AGGP -> CONP half-way): the outcome names the
     switch, and the environment's runs of the same seed with and without it are the same
-    driving before it (like for like), so the rows after it tell what the switch did: in the
-    bag and in the environment, the CAVs on the road at it slow down and keep longer gaps."""
+    driving before it (like for like), so the figures after it tell what the switch did: the
+    CAVs on the road at it slow down and keep longer gaps than without it. The returns are each
+    mode's for the part of the episode it drove, to the episode's end."""
+    import math
     from pathlib import Path
 
     from exit_decision.config import load_project
     from exit_decision.model.names import default_policy_dir
     from exit_decision.ros.bags.replay import FIXTURE_RUN
-    from exit_decision.ros.bags.switch import recorded_switch, switch_report
+    from exit_decision.ros.bags.switch import recorded_switch, switch_outcome
 
     fixture = Path(__file__).parent / 'fixtures' / 'replay_bag'
     config = load_project(None, overrides=[fixture / 'override.yaml'])
     switch = recorded_switch(fixture / 'bag', config)
     assert (switch.before, switch.after) == ('AGGP', 'CONP') and switch.step >= FIXTURE_RUN['switch_at_step']
-    report = switch_report(fixture / 'bag', config, default_policy_dir(), FIXTURE_RUN['algorithm'], FIXTURE_RUN['seed'])
-    assert report.startswith(f'the switch AGGP -> CONP at t = {switch.time:.1f} s')
-    rows = [line.split('|')[2:] for line in report.splitlines() if line.startswith('| environment') and 'before' in line]
-    assert len(rows) == 2 and rows[0] == rows[1], 'the same driving before the switch'
-    figures = {line.split('|')[1].strip(): [float(cell) for cell in line.split('|')[2:4]]
-               for line in report.splitlines() if line.startswith('| ') and ' s ' in line}
-    (bag_speed, bag_headway), (bag_speed_after, bag_headway_after) = (
-        figures[f'the stack (bag), AGGP -> CONP, 10 s {side}'] for side in ('before', 'after'))
-    assert bag_speed_after < bag_speed and bag_headway_after > bag_headway, \
-        f'on the bag, after AGGP -> CONP the CAVs slow down and keep longer gaps: {figures}'
-    (switched_speed, switched_headway), (kept_speed, kept_headway) = (
-        figures[f'environment, {run}, 10 s after'] for run in ('AGGP -> CONP', 'AGGP throughout'))
-    assert switched_speed < kept_speed and switched_headway > kept_headway, \
-        f'slower, with longer gaps, than the same seed without the switch: {figures}'
+    outcome = switch_outcome(fixture / 'bag', config, default_policy_dir(), FIXTURE_RUN['algorithm'],
+                             FIXTURE_RUN['seed'])
+    assert outcome.switch == switch and outcome.seed == FIXTURE_RUN['seed']
+    assert outcome.switched[0] == outcome.kept[0], 'the same driving before the switch'
+    (_, switched), (_, kept) = outcome.switched, outcome.kept
+    assert switched.speed < kept.speed and switched.headway > kept.headway, \
+        f'slower, with longer gaps, than the same seed without the switch: {switched}, {kept}'
+    assert switch.step < outcome.last_step <= config.scenario.max_steps
+    assert all(math.isfinite(value) for value in outcome.returns)

@@ -115,7 +115,7 @@ def test_train_refuses_episodes_when_the_config_budgets_environment_steps(config
     override = tmp_path / 'steps.yaml'
     override.write_text('training: {environment_steps: 100}\n')
     assert main(['train', '--config-dir', str(config_dir), '--override', str(override), '--algorithm', 'gqn',
-                 '--mode', 'CONP', '--episodes', '3', '--out', str(tmp_path / 'run')]) == 2
+                 '--conditioning', 'CONP', '--episodes', '3', '--out', str(tmp_path / 'run')]) == 2
     assert "--episodes 3: this config's budget for gqn is environment_steps: 100" in capsys.readouterr().err
     assert not (tmp_path / 'run').exists()
 

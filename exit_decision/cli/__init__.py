@@ -27,7 +27,7 @@ DESCRIPTION = ('Graph RL highway-exit decisions for CAVs (SUMO + ROS 2): the pro
 EXAMPLES = '''examples:
   # the main job (scripts/main): the ROS 2 stack drives an episode, switches AGGP to CONP, records a bag
   exit-decision stack
-  # that bag's episodes: a time-space diagram and a bird's-eye clip (its path is the last line stack prints)
+  # that bag's episodes: a time-space diagram and a bird's-eye clip (its path is on the line stack prints after the metrics: bag: ...)
   exit-decision show bags/exit_decision_<time>
   # episodes without ROS and without a policy: the metrics table
   exit-decision run --episodes 3
@@ -67,17 +67,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Runs the command; a refusal is one line and exit code 2 (a renamed option's note folded
+    into it), else each note of an old spelling is a line on stderr after the command."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.invocation = 'exit-decision ' + shlex.join(argv)   # what the outputs say made them
+    notes = getattr(args, 'notes', None) or []
+    folded = ''.join(f' (note: {text})' for text in notes)
     try:
-        return args.func(args)
+        code = args.func(args)
     except OptionError as error:
-        print(f'exit-decision {args.command}: error: {error}', file=sys.stderr)
+        print(f'exit-decision {args.command}: error: {error}{folded}', file=sys.stderr)
         return 2
     except (ConfigError, PolicyError, UsageError) as error:
-        print(f'exit-decision: {error}', file=sys.stderr)
+        print(f'exit-decision: {error}{folded}', file=sys.stderr)
         return 2
     except StackError as error:   # stack, fixture record: every node it started is stopped already
         print(f'exit-decision: {args.command}: {error}', file=sys.stderr)
-        return 1
+        code = 1
+    for text in notes:
+        print(f'exit-decision {args.command}: note: {text}', file=sys.stderr)
+    return code

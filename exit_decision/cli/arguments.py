@@ -128,7 +128,110 @@ def known(option: str, value, check) -> None:
         raise OptionError(f'argument {option}: {error}') from None
 
 
-def known_algorithm(algorithm: str, config) -> None:
-    """--algorithm: a learned method of the config, or <method>[_options][_conditioned] (OptionError)."""
+def known_algorithm(algorithm: str, config, option: str = '--algorithm') -> None:
+    """``option``: a learned method of the config, or <method>[_options][_conditioned] (OptionError)."""
     from exit_decision.model.names import method_of
-    known('--algorithm', method_of(algorithm), config.training.method)
+    known(option, method_of(algorithm), config.training.method)
+
+
+# --- one vocabulary: the old spellings of renamed options, and options given once per value ------
+
+def note(namespace: argparse.Namespace, text: str) -> None:
+    """A deprecation note for ``cli.main`` to print (once each) after the command, or to fold into
+    the one line of a refusal."""
+    notes = getattr(namespace, 'notes', None) or []
+    if text not in notes:
+        namespace.notes = [*notes, text]
+
+
+class OldSpelling(argparse.Action):
+    """An option's old spelling, hidden from --help; it still works, with a note."""
+
+
+class Replaced(OldSpelling, argparse._StoreAction):
+    """An old option with no one new spelling (``hint`` says what to give instead): stored as
+    it was, for the command to take into the new option."""
+
+    def __init__(self, option_strings, dest, hint: str = '', **kwargs):
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
+        self.hint = hint
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        super().__call__(parser, namespace, values, option_string)
+        note(namespace, f'{option_string} is old: {self.hint}; the old spelling still works, for now')
+
+
+class Renamed(OldSpelling):
+    """An old spelling of an option, hidden from --help: its values go through the new option's
+    action (its type, its repeats), and a note names the new spelling. ``several``: the old
+    spelling took several values after it (``--runs a b``); each goes to the new one."""
+
+    def __init__(self, option_strings, dest, new: argparse.Action, several: bool = False, **kwargs):
+        super().__init__(option_strings, new.dest, nargs='+' if several else new.nargs, type=new.type,
+                         choices=new.choices, default=argparse.SUPPRESS, help=argparse.SUPPRESS, metavar=new.metavar)
+        self.new = new
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        for value in values if self.nargs == '+' else [values]:
+            self.new(parser, namespace, [value] if self.new.nargs == '+' else value, option_string)
+        note(namespace, f'{option_string} is now {self.new.option_strings[-1]}; the old spelling still works, for now')
+
+
+def renamed(parser: argparse.ArgumentParser, old: str, new: argparse.Action, several: bool = False) -> None:
+    """Adds ``old``, an old spelling of the option ``new`` (what ``add_argument`` returned)."""
+    parser.add_argument(old, action=Renamed, new=new, several=several)
+
+
+class Repeated(argparse._AppendAction):
+    """An option given once per value (``--only 1 --only 2``); the old form with several values
+    after one option (``--only 1 2``) still works, with a note."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        kwargs['nargs'] = '+'
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        items = list(getattr(namespace, self.dest, None) or [])
+        setattr(namespace, self.dest, items + list(values))
+        if len(values) > 1:
+            note(namespace, f'{option_string} takes one value; give it once per value: '
+                            + ' '.join(f'{option_string} {value}' for value in values))
+
+
+def shipped_policy_dir() -> Path:
+    """The shipped policies/ (a checkout's, else the installed one)."""
+    from exit_decision.model.names import default_policy_dir
+    return default_policy_dir()
+
+
+#: what a policy option allows, said by its refusals
+POLICY_FORMS = ('a directory name under policies/ (e.g. mdgqn_options_conditioned), or the path of a policy '
+                'directory or of its policy.pt')
+
+
+def policy_directory(text: str) -> Path:
+    """An argparse type: a policy chosen by its directory under policies/ or a path (a directory,
+    or a file in it such as policy.pt): the directory."""
+    path = Path(text)
+    if not path.exists() and len(path.parts) == 1 and (shipped_policy_dir() / text).is_dir():
+        path = shipped_policy_dir() / text
+    if path.is_file():
+        path = path.parent
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f'{text!r}: no such policy; allowed: {POLICY_FORMS}')
+    return path
+
+
+def policy(text: str) -> Path:
+    """An argparse type: a policy chosen as ``policy_directory`` does, or a checkpoint file by
+    its path: the checkpoint (the directory's policy.pt)."""
+    path = Path(text)
+    if not path.is_file():
+        path = policy_directory(text) / 'policy.pt'
+        if not path.is_file():
+            raise argparse.ArgumentTypeError(f'{text!r}: no policy.pt in {path.parent}; allowed: {POLICY_FORMS}')
+    try:
+        return checkpoint(str(path))
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f'{text!r}: not a checkpoint (a policy.pt or last.pt written by '
+                                         f'training); allowed: {POLICY_FORMS}') from None

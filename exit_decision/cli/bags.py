@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from exit_decision.cli.arguments import checkpoint, config_options, existing, known, known_algorithm, number
+from exit_decision.cli.arguments import config_options, existing, known, known_algorithm, number, policy
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
 
@@ -73,8 +73,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument('--mode', default=None, help='replay with this mode (default: the recorded one)')
     replay.add_argument('--algorithm', default=None,
                         help='replay with this learned method\'s policies in --policy-dir (default: the recorded one)')
-    replay.add_argument('--policy', type=checkpoint, default=None,
-                        help='a policy.pt to replay with instead (default: the policies of --algorithm in --policy-dir)')
+    replay.add_argument('--policy', type=policy, default=None,
+                        help='a policy to replay with instead: a directory name under policies/ or the path of a '
+                             'policy directory or of a checkpoint (default: the policies of --algorithm in --policy-dir)')
     replay.add_argument('--policy-dir', type=existing('dir'), default=None,
                         help='directory of the policies, <algorithm>[_<mode>]/policy.pt (default: the shipped '
                              'policies/)')

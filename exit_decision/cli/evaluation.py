@@ -9,7 +9,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from exit_decision.config.seeds import TEST_SEED
-from exit_decision.cli.arguments import COUNT, SEED, OptionError, checkpoint, config_options, known, number
+from exit_decision.cli.arguments import COUNT, SEED, OptionError, config_options, known, number, policy, renamed
 from exit_decision.config import ConfigError, default_config_dir, load_project
 from exit_decision.errors import UsageError
 
@@ -21,17 +21,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     from exit_decision.env import ExitDecisionEnv
     from exit_decision.evaluation.metrics import markdown_table, summarize
 
-    if args.variant and args.scenario_override:
-        raise UsageError('--variant and --scenario-override: give one (a variant is a scenario override)')
-    if args.variant:
+    if args.scenario_variant and args.scenario_override:
+        raise UsageError('--scenario-variant and --scenario-override: give one (a variant is a scenario override)')
+    if args.scenario_variant:
         from exit_decision.config import load_variants
         config = load_variants((args.config_dir or default_config_dir()) / 'variants.yaml', args.config_dir,
-                               args.override, [args.variant])[args.variant]
+                               args.override, [args.scenario_variant])[args.scenario_variant]
     else:
         config = load_project(args.config_dir, args.scenario_override, args.override)
-    if args.mode:
-        known('--mode', args.mode, config.mode)
-    env = ExitDecisionEnv(config, mode=args.mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
+    if args.score_mode:
+        known('--score-mode', args.score_mode, config.mode)
+    env = ExitDecisionEnv(config, mode=args.score_mode, cav_driver='sumo' if args.driver == 'sumo' else 'policy')
     driver = fixed.sumo() if args.driver == 'sumo' else fixed.held_lanes(env)
     episodes, peak = [], 0
     try:
@@ -66,9 +66,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir, args.scenario_override, args.override)
     if not args.policy and not args.driver:
         raise OptionError('nothing to evaluate: give --policy or --driver (each repeatable)')
-    for mode in args.mode:
-        known('--mode', mode, config.mode)
-    modes = args.mode or list(config.training.conditioning.validation_modes)
+    for mode in args.score_mode:
+        known('--score-mode', mode, config.mode)
+    modes = args.score_mode or list(config.training.conditioning.validation_modes)
     sanity_drivers = {}
     if any(':' in driver for driver in args.driver):
         from exit_decision.experiments.reward_sanity import load_sweep
@@ -102,11 +102,11 @@ def reference_driver(text: str) -> str:
 #: evaluate --help's examples
 EVALUATE_EXAMPLES = '''examples:
   # the shipped policy against the neutral rule-based driver and SUMO's drivers, 20 test seeds, under CONP
-  exit-decision evaluate --policy policies/mdgqn_options_conditioned/policy.pt --driver rule_based --driver sumo --mode CONP --episodes 20 --out runs/evaluation_conp
+  exit-decision evaluate --policy mdgqn_options_conditioned --driver rule_based --driver sumo --score-mode CONP --episodes 20 --out runs/evaluation_conp
   # the reference drivers alone under the validation modes, and each run's first 2 episodes drawn into runs/evaluation/show/
   exit-decision evaluate --driver rule_based --driver sumo --episodes 10 --show 2
   # the grid's conditioned MDGQN under the paper's four modes, 100 test seeds
-  exit-decision evaluate --policy policies/mdgqn_conditioned/policy.pt --driver rule_based --mode AGGI --mode AGGP --mode CONI --mode CONP --episodes 100 --out runs/evaluation
+  exit-decision evaluate --policy mdgqn_conditioned --driver rule_based --score-mode AGGI --score-mode AGGP --score-mode CONI --score-mode CONP --episodes 100 --out runs/evaluation
 '''
 
 
@@ -120,10 +120,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                      help='who drives the CAVs: sumo = SUMO\'s own drivers, routed to the target exit (the '
                           'rule-based reference); hold = the policy interface with SUMO\'s safety off, '
                           'every CAV holding lane and speed (shows that collisions are real)')
-    run.add_argument('--mode', default=None, help='decision mode whose reward is reported (default: env.yaml\'s)')
-    run.add_argument('--variant', default=None,
-                     help='a cell of config/variants.yaml (e.g. density_1.45) instead of the base scenario; not with '
-                          '--scenario-override (default: the base scenario)')
+    renamed(run, '--mode', run.add_argument('--score-mode', default=None,
+                                            help='the mode whose reward is reported (default: env.yaml\'s)'))
+    renamed(run, '--variant', run.add_argument(
+        '--scenario-variant', default=None,
+        help='a cell of config/variants.yaml (e.g. density_1.45) instead of the base scenario; not with '
+             '--scenario-override (default: the base scenario)'))
     run.add_argument('--csv', type=Path, default=None, help='write per-episode metrics here (default: not written)')
     run.add_argument('--markdown', type=Path, default=None,
                      help='write the table with the command and the full configuration here (default: not written)')
@@ -132,14 +134,18 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     evaluate = commands.add_parser('evaluate', help='evaluate policies / reference drivers on fixed seeds',
                                    epilog=EVALUATE_EXAMPLES)
     config_options(evaluate)
-    evaluate.add_argument('--policy', type=checkpoint, action='append', default=[], help='a policy.pt, grid or options (repeatable; default: none; give --policy, --driver or both)')
+    evaluate.add_argument('--policy', type=policy, action='append', default=[],
+                          help='a policy, grid or options: a directory name under policies/ or the path of a policy '
+                               'directory or of a checkpoint (repeatable; default: none; give --policy, --driver or '
+                               'both)')
     evaluate.add_argument('--driver', action='append', default=[], type=reference_driver,
                           help='a reference driver (repeatable): sumo (SUMO\'s own drivers), rule_based '
                                '(the neutral teacher, env.yaml\'s rule_based) or rule_based:<name> (a driver '
                                'of config/reward_sanity.yaml); default: none')
-    evaluate.add_argument('--mode', action='append', default=[],
-                          help='score (and run a conditioned policy) under this mode (repeatable; default: '
-                               'training.yaml conditioning.validation_modes); one CSV per run and mode')
+    renamed(evaluate, '--mode', evaluate.add_argument(
+        '--score-mode', action='append', default=[],
+        help='score (and run a conditioned policy) under this mode (repeatable; default: training.yaml '
+             'conditioning.validation_modes); one CSV per run and mode'))
     evaluate.add_argument('--episodes', type=COUNT, default=50, help='test seeds: episodes per run')
     evaluate.add_argument('--seed', type=SEED, default=TEST_SEED, help='first test seed (never used in training)')
     evaluate.add_argument('--out', type=Path, default=Path('runs/evaluation'),

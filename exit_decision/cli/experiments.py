@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from exit_decision.config.seeds import SANITY_SEED, TEST_SEED, VALIDATION_SEED
-from exit_decision.cli.arguments import (COUNT, SEED, STEP, OptionError, checkpoint, config_options, existing, known,
-                                         number)
+from exit_decision.cli.arguments import (COUNT, SEED, STEP, OptionError, Repeated, config_options, existing, known,
+                                         number, policy, renamed)
 from exit_decision.config import ConfigError, default_config_dir, load_project
 from exit_decision.model.names import DEFAULT_ALGORITHM, GRID_ALGORITHM, policy_path
 
@@ -17,9 +17,9 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     from exit_decision.experiments.ablation import markdown, run_ablation
 
     config = load_project(args.config_dir)
-    mode = args.mode or config.env.mode
+    mode = args.score_mode or config.env.mode
     known('--algorithm', args.algorithm, config.training.method)
-    known('--mode', mode, config.mode)
+    known('--score-mode', mode, config.mode)
     if args.only:
         from exit_decision.experiments.ablation import ablation_steps
         steps = len(ablation_steps((args.config_dir or default_config_dir()) / 'ablation.yaml'))
@@ -40,9 +40,9 @@ def cmd_reward_sanity(args: argparse.Namespace) -> int:
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     sweep = args.sweep or (args.config_dir or default_config_dir()) / 'reward_sanity.yaml'
-    for variant in args.variant:
-        known('--variant', variant, config.reward)
-    variants = args.variant or [config.env.reward_variant]
+    for variant in args.reward_variant:
+        known('--reward-variant', variant, config.reward)
+    variants = args.reward_variant or [config.env.reward_variant]
     if args.calibrate:
         episodes = args.out / 'episodes.csv'
         if not episodes.is_file():
@@ -61,8 +61,8 @@ def cmd_options_table(args: argparse.Namespace) -> int:
     from exit_decision.experiments.constant_options import write_table
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
-    for variant in args.variant:
-        known('--variant', variant, config.reward)
+    for variant in args.reward_variant:
+        known('--reward-variant', variant, config.reward)
     from exit_decision.experiments.constant_options import policy_label
     from exit_decision.model.policy import load_policy
     policies = {}
@@ -73,7 +73,7 @@ def cmd_options_table(args: argparse.Namespace) -> int:
                               f'directory and file name')
         policies[policy_label(path)] = path
     print(write_table(config, list(range(args.seed, args.seed + args.episodes)),
-                      args.variant or [config.env.reward_variant], args.jobs, args.out, args.invocation, policies))
+                      args.reward_variant or [config.env.reward_variant], args.jobs, args.out, args.invocation, policies))
     return 0
 
 
@@ -98,12 +98,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from exit_decision.experiments.comparison_report import write_comparison
 
     config_dir = args.config_dir or default_config_dir()
-    configs = load_variants(args.variants or config_dir / 'variants.yaml', args.config_dir, args.override,
-                            args.variant)
+    configs = load_variants(args.scenario_variants or config_dir / 'variants.yaml', args.config_dir, args.override,
+                            args.scenario_variant)
     base = next(iter(configs.values()))
-    for mode in args.mode:
-        known('--mode', mode, base.mode)
-    modes = args.mode or list(base.training.conditioning.validation_modes)
+    for mode in args.score_mode:
+        known('--score-mode', mode, base.mode)
+    modes = args.score_mode or list(base.training.conditioning.validation_modes)
     methods = base.training.method_names if args.train == ['all'] else args.train
     for method in methods:
         known('--train', method, base.training.method)
@@ -148,9 +148,9 @@ def comparison_method(text: str) -> str:
     if text in REFERENCE_DRIVERS:
         return text
     try:
-        return str(checkpoint(text))
+        return str(policy(text))
     except argparse.ArgumentTypeError as error:
-        raise argparse.ArgumentTypeError(f'{error}; allowed: {", ".join(REFERENCE_DRIVERS)} or a policy.pt') from None
+        raise argparse.ArgumentTypeError(f'{error}; or {", ".join(REFERENCE_DRIVERS)}') from None
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -159,14 +159,17 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     ablation.add_argument('--config-dir', type=existing('dir'), default=None,
                           help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
     ablation.add_argument('--algorithm', default='mdgqn', help='a method of config/training.yaml')
-    ablation.add_argument('--mode', default=None, help='decision mode (default: env.yaml\'s mode)')
+    renamed(ablation, '--mode', ablation.add_argument(
+        '--score-mode', default=None,
+        help='the mode each step is scored under, and trained for where a step trains one mode (default: env.yaml\'s '
+             'mode)'))
     ablation.add_argument('--episodes', type=COUNT, default=40, help='training episodes per step')
     ablation.add_argument('--test-episodes', type=COUNT, default=10, help='test episodes per step')
     ablation.add_argument('--seed', type=SEED, default=0, help='training seed')
     ablation.add_argument('--test-seed', type=SEED, default=TEST_SEED, help='the first test seed')
-    ablation.add_argument('--only', type=STEP, nargs='*', default=None,
-                          help='step indices to run, their places in config/ablation.yaml (several may follow; '
-                               'default: every step)')
+    ablation.add_argument('--only', type=STEP, action=Repeated, default=None,
+                          help='a step index to run, its place in config/ablation.yaml (repeatable; default: every '
+                               'step)')
     ablation.add_argument('--out', type=Path, default=Path('runs/ablation'), help='where the runs go')
     ablation.set_defaults(func=cmd_ablation)
 
@@ -174,8 +177,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     config_options(sanity)
     sanity.add_argument('--sweep', type=existing('file'), default=None,
                         help='drivers (default: config/reward_sanity.yaml)')
-    sanity.add_argument('--variant', action='append', default=[],
-                        help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)')
+    renamed(sanity, '--variant', sanity.add_argument(
+        '--reward-variant', action='append', default=[],
+        help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)'))
     sanity.add_argument('--episodes', type=COUNT, default=30, help='paired seeds per driver')
     sanity.add_argument('--seed', type=SEED, default=SANITY_SEED, help='first seed (not a test or training seed)')
     sanity.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
@@ -194,10 +198,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     options.add_argument('--episodes', type=COUNT, default=50, help='paired seeds per run')
     options.add_argument('--seed', type=SEED, default=VALIDATION_SEED,
                          help='first seed (900000: the validation seeds; 10000: the test seeds)')
-    options.add_argument('--variant', action='append', default=[],
-                         help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)')
-    options.add_argument('--policy', type=checkpoint, action='append', default=[],
-                         help='a policy.pt (grid or options; repeatable) to judge against the best fixed driver of '
+    renamed(options, '--variant', options.add_argument(
+        '--reward-variant', action='append', default=[],
+        help='reward variant of config/reward.yaml to score under (repeatable; default: env.yaml\'s)'))
+    options.add_argument('--policy', type=policy, action='append', default=[],
+                         help='a policy (grid or options; repeatable): a directory name under policies/ or the path '
+                              'of a policy directory or of a checkpoint, to judge against the best fixed driver of '
                               'each mode and SUMO\'s drivers on the same seeds; named by its run directory '
                               '(default: none, the fixed drivers only)')
     options.add_argument('--jobs', type=COUNT, default=2, help='worker processes (one simulation each)')
@@ -207,8 +213,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
     tradeoff = commands.add_parser('tradeoff', help='a conditioned policy at every weight point (figure)')
     config_options(tradeoff)
-    tradeoff.add_argument('--policy', type=checkpoint, default=policy_path(Path('policies'), DEFAULT_ALGORITHM),
-                          help='a mode-conditioned policy.pt (grid or options)')
+    tradeoff.add_argument('--policy', type=policy, default=policy_path(Path('policies'), DEFAULT_ALGORITHM),
+                          help='a mode-conditioned policy (grid or options): a directory name under policies/ or the '
+                               'path of a policy directory or of a checkpoint')
     tradeoff.add_argument('--episodes', type=COUNT, default=20, help='seeds per weight point')
     tradeoff.add_argument('--seed', type=SEED, default=40_000, help='first seed (not a test or training seed)')
     tradeoff.add_argument('--out', type=Path, default=Path('docs/results/tradeoff'),
@@ -225,12 +232,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     compare.add_argument('--override', type=existing('file'), action='append', default=[],
                          help='YAML keyed by config file merged over the config of every variant (repeatable; '
                               'default: none)')
-    compare.add_argument('--variants', type=existing('file'), default=None,
-                         help='the scenario variants (default: <config dir>/variants.yaml)')
-    compare.add_argument('--variant', action='append', default=[],
-                         help='only this cell of the file (repeatable; default: every cell)')
+    renamed(compare, '--variants', compare.add_argument(
+        '--scenario-variants', type=existing('file'), default=None,
+        help='the scenario variants (default: <config dir>/variants.yaml)'))
+    renamed(compare, '--variant', compare.add_argument(
+        '--scenario-variant', action='append', default=[],
+        help='only this cell of the scenario variants (repeatable; default: every cell)'))
     compare.add_argument('--method', type=comparison_method, action='append', default=[],
-                         help='rule_based, sumo or a policy.pt (repeatable; default: both drivers, and the shipped '
+                         help='rule_based, sumo or a policy (a directory name under policies/ or the path of a policy '
+                              'directory or of a checkpoint; repeatable; default: both drivers, and the shipped '
                               f'policies/{GRID_ALGORITHM}/policy.pt unless --train is given)')
     compare.add_argument('--train', action='append', default=[],
                          help='a method of config/training.yaml to train (repeatable; "all": every one) on the base '
@@ -248,8 +258,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                               'simulation, no checkpoint of a --train run read)')
     compare.add_argument('--report', type=Path, default=None,
                          help='the comparison page (figures beside it; default: <out>/comparison.md)')
-    compare.add_argument('--mode', action='append', default=[],
-                         help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)')
+    renamed(compare, '--mode', compare.add_argument(
+        '--score-mode', action='append', default=[],
+        help='score under this mode (repeatable; default: training.yaml conditioning.validation_modes)'))
     compare.add_argument('--episodes', type=number(int, 1), default=30, help='seeds per cell')
     compare.add_argument('--seed', type=SEED, default=TEST_SEED, help='first test seed (never used in training)')
     compare.add_argument('--out', type=Path, default=Path('runs/compare'),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from exit_decision.cli.arguments import existing
+from exit_decision.cli.arguments import existing, policy_directory, renamed
 from exit_decision.config import load_project
 from exit_decision.model.names import DEFAULT_ALGORITHM
 
@@ -14,7 +14,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     """PNG figures from training runs and an evaluation directory."""
     from exit_decision.evaluation.plots import make_all
 
-    for path in make_all(args.runs, args.evaluation, args.out):
+    for path in make_all(args.policy, args.evaluation, args.out):
         print(path)
     return 0
 
@@ -27,7 +27,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     from exit_decision.tables import read_rows
 
     config = load_project(args.config_dir)
-    print(results_page(args.evaluation, args.runs, args.sanity, args.tradeoff, args.figures, args.out,
+    runs = args.policy or [Path('policies') / DEFAULT_ALGORITHM]
+    print(results_page(args.evaluation, runs, args.sanity, args.tradeoff, args.figures, args.out,
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings,
                        options_dir=args.options_table))
     table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
@@ -40,8 +41,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 def add_commands(commands: argparse._SubParsersAction) -> None:
     """Adds ``plot`` and ``report``."""
     plot = commands.add_parser('plot', help='PNG figures from training runs and evaluation results')
-    plot.add_argument('--runs', type=existing('dir'), nargs='*', default=[],
-                      help='training run directories (several may follow; default: none)')
+    renamed(plot, '--runs', plot.add_argument(
+        '--policy', type=policy_directory, action='append', default=[],
+        help='a training run: a directory name under policies/ or a run directory\'s path (repeatable; default: '
+             'none)'), several=True)
     plot.add_argument('--evaluation', type=existing('dir'), default=None,
                       help='an evaluate --out directory (default: none)')
     plot.add_argument('--out', type=Path, default=Path('docs/figures'), help='where the figures go')
@@ -52,8 +55,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                         help='an evaluate --out directory (commands.txt and benchmarks.txt beside it)')
     report.add_argument('--config-dir', type=existing('dir'), default=None,
                         help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
-    report.add_argument('--runs', type=existing('dir'), nargs='*', default=[Path('policies') / DEFAULT_ALGORITHM],
-                        help='training run directories (validation history, wall time; several may follow)')
+    renamed(report, '--runs', report.add_argument(
+        '--policy', type=policy_directory, action='append', default=[],
+        help='a training run (validation history, wall time): a directory name under policies/ or a run directory\'s '
+             f'path (repeatable; default: policies/{DEFAULT_ALGORITHM})'), several=True)
     report.add_argument('--sanity', type=existing('dir'), default=Path('docs/results/reward_sanity_headway'),
                         help='a reward-sanity --out directory; the default holds the sweep under the frozen reward\'s '
                              'variant, headway')

@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 from exit_decision.config.seeds import TEST_SEED
-from exit_decision.cli.arguments import SEED, STEP, OptionError, existing, known, known_algorithm, new_path, number
+from exit_decision.cli.arguments import (SEED, STEP, OptionError, Replaced, existing, known, known_algorithm, new_path,
+                                         number, renamed)
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
 from exit_decision.model.names import DEFAULT_ALGORITHM, SHIPPED_ALGORITHMS
@@ -43,20 +44,40 @@ def check_thread_priority(priority: int) -> None:
         raise UsageError(f'--thread-priority {reason}')
 
 
+def stack_policy(reference: str | None, policy_dir: Path | None) -> tuple[Path | None, str]:
+    """(policy_dir, algorithm) the decision node takes for ``--policy``: a directory name under
+    policies/ (or under the old ``--policy-dir``), the path of a policy directory or of its
+    policy.pt (a directory named as its algorithm), or a per-mode method's name (gqn, mdgqn: its
+    <name>_<mode>/ directories); ``None``: the shipped policy."""
+    if reference is None:
+        return policy_dir, DEFAULT_ALGORITHM
+    path = policy_dir / reference if policy_dir else Path(reference)
+    if path.is_file():
+        path = path.parent
+    if (path / 'policy.pt').is_file():
+        return path.parent, path.name
+    if len(Path(reference).parts) == 1:   # a name: of the shipped policies/ (or --policy-dir), or a per-mode method
+        return policy_dir, reference
+    raise OptionError(f'argument --policy: {reference!r}: no policy.pt in {path}; allowed: a directory name under '
+                      f'policies/, a per-mode method ({", ".join(a for a in SHIPPED_ALGORITHMS if "_" not in a)}), or '
+                      f'the path of a policy directory or of its policy.pt')
+
+
 def cmd_stack(args: argparse.Namespace) -> int:
     """The whole ROS 2 stack in separate processes: an episode, a mode switch, a bag."""
     from datetime import datetime
 
-    from exit_decision.evaluation.metrics import markdown_table, summarize
+    from exit_decision.evaluation import main_job
     from exit_decision.ros.stack.launcher import free_bag_path, run_stack
 
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     check_thread_priority(args.thread_priority)
     matrix = config.mode_matrix
-    known_algorithm(args.algorithm, config)
-    mode = args.mode or matrix.aggressive.punished
+    args.policy_dir, args.algorithm = stack_policy(args.policy, args.policy_dir)
+    known_algorithm(args.algorithm, config, '--policy')
+    mode = args.start_mode or matrix.aggressive.punished
     switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
-    known('--mode', mode, config.mode)
+    known('--start-mode', mode, config.mode)
     if switch_to:
         known('--switch-to', switch_to, config.mode)
         if args.switch_at >= config.scenario.max_steps:
@@ -66,30 +87,45 @@ def cmd_stack(args: argparse.Namespace) -> int:
     modes = [] if args.algorithm in SHIPPED_ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
+    log_dir = Path('runs') / 'stack_logs' / stamp
+    episodes = {0: 'episodes until stopped', 1: '1 episode'}.get(args.episodes, f'{args.episodes} episodes')
+    switching = f', switching to {switch_to} at step {args.switch_at}' if switch_to else ''
+    print(f'the stack: {args.algorithm} in {mode}{switching}, seed {args.seed}, {episodes}', flush=True)
     run = run_stack(mode=mode, modes=modes, algorithm=args.algorithm, episodes=args.episodes, seed=args.seed,
-                    bag_path=bag, log_dir=Path('runs') / 'stack_logs' / stamp,
+                    bag_path=bag, log_dir=log_dir,
                     switch_to=switch_to, switch_at_step=args.switch_at,
                     config_dir=str(args.config_dir or ''), policy_dir=str(args.policy_dir or ''),
                     visualizer=not args.no_visualizer, thread_priority=args.thread_priority,
-                    cpu_split=not args.no_cpu_split, compression=args.compression)
+                    cpu_split=not args.no_cpu_split, compression=args.compression,
+                    say=lambda line: print(line, flush=True), step_length=config.scenario.step_length)
+    print()
     if run.stopped_by:
         print(f'stopped by {run.stopped_by}: {len(run.episodes)} episode(s) finished; the nodes stopped')
-    if run.mode_switch:
-        print(run.mode_switch)
-    elif switch_to:
-        print(f'no mode switch: the first episode did not reach step {args.switch_at}')
     if run.episodes:
-        switched = run.mode_switch.endswith('accepted')
-        label = f'{args.algorithm} {mode}' + (f' -> {switch_to}' if switched else '')
-        print(markdown_table([(label, summarize(run.episodes))]))
-        if switched:   # what the switch changed, beside the same seed without it
-            from exit_decision.model.names import default_policy_dir
-            from exit_decision.ros.bags.switch import switch_report
-            print(switch_report(bag, config, Path(args.policy_dir) if args.policy_dir else default_policy_dir(),
-                                args.algorithm, args.seed))
+        label = f'{args.algorithm}, {mode}' + (f' -> {switch_to}' if run.mode_switch.endswith('accepted') else '')
+        print('\n'.join(main_job.metrics_lines(run.episodes, config.scenario.emergency_braking_threshold, label)))
     else:
-        print('no episode finished' + ('' if run.stopped_by else ' (see the logs)'))
+        print('no episode finished' + ('' if run.stopped_by else f' (see the nodes\' logs in {log_dir}/)'))
+    if switch_to and not run.mode_switch:
+        print(f'no mode switch: the first episode did not reach step {args.switch_at}')
+    elif run.mode_switch and not run.mode_switch.endswith('accepted'):
+        print(f'the mode switch was not made: {run.mode_switch}')
+    elif run.mode_switch and run.episodes:   # what the switch changed, beside the same seed without it
+        from exit_decision.model.names import default_policy_dir
+        from exit_decision.ros.bags.switch import switch_outcome
+        outcome = switch_outcome(bag, config, Path(args.policy_dir) if args.policy_dir else default_policy_dir(),
+                                 args.algorithm, args.seed)
+        if outcome is None:
+            print(f'the bag\'s decisions keep one mode: the switch ({run.mode_switch}) did not land in it')
+        else:
+            timing = main_job.SwitchTiming(run.switch.asked, run.switch.requested, outcome.switch.step,
+                                           config.env.decision_interval, config.scenario.step_length)
+            print(main_job.timing_line(mode, switch_to, timing))
+            print(main_job.returns_line(outcome))
+            print(main_job.verdict_line(outcome))
+            print(main_job.consistency_line(outcome))
     print(f'bag: {bag}')
+    print('\n'.join(main_job.next_lines(bag, log_dir)))
     failed = {name: code for name, code in run.return_codes.items() if code not in (0, -2, -9)}
     if failed:
         print(f'nodes that failed: {failed}', file=sys.stderr)
@@ -104,12 +140,12 @@ STACK_EXAMPLES = '''examples:
   # the main job (scripts/main): the shipped policy, AGGP switched to CONP at step 300, seed 10000, a bag in bags/
   exit-decision stack
   # another start mode, switch and seed, into a bag of a chosen name; then its diagrams and clip
-  exit-decision stack --mode CONI --switch-to AGGI --switch-at 200 --seed 10001 --bag bags/coni_to_aggi
+  exit-decision stack --start-mode CONI --switch-to AGGI --switch-at 200 --seed 10001 --bag bags/coni_to_aggi
   exit-decision show bags/coni_to_aggi
   # no switch, no visualizer, episodes until Ctrl-C
   exit-decision stack --switch-to "" --no-visualizer --episodes 0
   # the conditioned MDGQN on the 81-action grid instead
-  exit-decision stack --algorithm mdgqn_conditioned
+  exit-decision stack --policy mdgqn_conditioned
 '''
 
 
@@ -122,17 +158,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                                    epilog=STACK_EXAMPLES)
     stack.add_argument('--config-dir', type=existing('dir'), default=None,
                        help='directory with scenario/graph/env/modes/reward YAML (default: config/)')
-    stack.add_argument('--mode', default=None,
-                       help='decision mode at start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
+    start_mode = stack.add_argument(
+        '--start-mode', default=None,
+        help='decision mode at the start (default: the aggressive punished mode of config/modes.yaml\'s matrix)')
+    renamed(stack, '--mode', start_mode)
     stack.add_argument('--switch-to', default=None,
                        help='mode to switch to mid-run ("" = no switch; default: the conservative punished mode '
                             'of config/modes.yaml\'s matrix)')
     stack.add_argument('--switch-at', type=STEP, default=300,
                        help='step of the first episode to switch at, below the scenario\'s max_steps')
-    stack.add_argument('--algorithm', default=DEFAULT_ALGORITHM,
-                       help='a learned method of config/training.yaml (<method>[_options][_conditioned]: over options; '
-                            f'one network for every mode); shipped: {", ".join(SHIPPED_ALGORITHMS)} (others: '
-                            '--policy-dir with <algorithm>_<mode>/policy.pt)')
+    policy = stack.add_argument(
+        '--policy', default=None,
+        help='the policy the decision node runs: a directory name under policies/ (shipped: '
+             f'{", ".join(a for a in SHIPPED_ALGORITHMS if "_" in a)}), a per-mode method whose <name>_<mode>/ '
+             'directories are there (gqn, mdgqn), or the path of a policy directory or of its policy.pt (a '
+             f'directory named as its algorithm, <method>[_options][_conditioned]); default: {DEFAULT_ALGORITHM}')
+    renamed(stack, '--algorithm', policy)
+    stack.add_argument('--policy-dir', action=Replaced, type=existing('dir'), default=None,
+                       hint='give --policy DIR/<name> (a policy directory\'s path)')
     stack.add_argument('--episodes', type=number(int, 0), default=1,
                        help='episodes to run; 0: until stopped (Ctrl-C or SIGTERM stop the nodes and '
                             'finish the bag)')
@@ -143,9 +186,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        default=STACK_ARGUMENTS['compression'].default,
                        help='mcap chunk compression of the bag (default: %(default)s; one episode of the shipped '
                             'scenario, 80 s simulated: none 3.55 MB, zstd 0.49 MB)')
-    stack.add_argument('--policy-dir', type=existing('dir'), default=None,
-                       help='directory of the policies, <algorithm>[_<mode>]/policy.pt (default: the shipped '
-                            'policies/)')
     stack.add_argument('--no-visualizer', action='store_true',
                        help='do not start the visualizer (no markers on /exit_decision/markers, none in the bag)')
     thread_priority_option(stack)

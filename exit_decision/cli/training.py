@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known, number
+from exit_decision.cli.arguments import COUNT, SEED, checkpoint, config_options, known, number, policy, renamed
 from exit_decision.config import load_project
 from exit_decision.errors import UsageError
 from exit_decision.model.names import algorithm_name, run_name
@@ -17,8 +17,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     config = load_project(args.config_dir, args.scenario_override, args.override)
     known('--algorithm', args.algorithm, config.training.method)
-    if args.mode != CONDITIONED:
-        known('--mode', args.mode, config.mode)
+    if args.conditioning != CONDITIONED:
+        known('--conditioning', args.conditioning, config.mode)
     episodes = args.episodes or config.training.episodes
     steps = config.training.of_method(args.algorithm).environment_steps
     if args.episodes and steps:
@@ -29,12 +29,12 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise UsageError(f'--address {args.address}: only with --actors N (N >= 1)')
         from exit_decision.learning.actors import check_address
         check_address(args.address)   # now, not after the demonstrations
-    run = run_name(algorithm_name(args.algorithm, args.action_space, False), args.mode)   # grid and options apart
+    run = run_name(algorithm_name(args.algorithm, args.action_space, False), args.conditioning)   # grid and options apart
     out_dir = args.out or Path('runs') / f'{run}_seed{args.seed}'
     if args.reward_variant:
         known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
-    trainer = Trainer(config, args.algorithm, args.mode, args.seed, out_dir, args.action_space)
+    trainer = Trainer(config, args.algorithm, args.conditioning, args.seed, out_dir, args.action_space)
     policy = trainer.run(episodes, resume=args.resume, init=args.init, actors=args.actors, address=args.address)
     if args.actors:
         counts = trainer.actor_counts
@@ -61,9 +61,9 @@ def cmd_anchor(args: argparse.Namespace) -> int:
 #: train --help's examples
 TRAIN_EXAMPLES = '''examples:
   # the shipped policy, the MDGQN over options for every mode (as scripts/train_policies trains it)
-  exit-decision train --algorithm mdgqn --mode conditioned --action-space options --override config/overrides/options_no_demonstrations.yaml --seed 2 --episodes 800 --out runs/mdgqn_options_conditioned
+  exit-decision train --algorithm mdgqn --conditioning conditioned --action-space options --override config/overrides/options_no_demonstrations.yaml --seed 2 --episodes 800 --out runs/mdgqn_options_conditioned
   # a per-mode GQN on the 81-action grid
-  exit-decision train --algorithm gqn --mode CONP --seed 1 --out runs/gqn_CONP_seed1
+  exit-decision train --algorithm gqn --conditioning CONP --seed 1 --out runs/gqn_CONP_seed1
   # a short trial of the default (the conditioned MDGQN on the grid: demonstrations, pre-training, RL)
   exit-decision train --episodes 20 --out runs/trial
 '''
@@ -77,9 +77,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     train.add_argument('--algorithm', default='mdgqn',
                        help='a method of config/training.yaml: gqn, mdgqn, dqn, ddqn, dueling_dqn, dueling_ddqn_per, '
                             'dueling_ddqn, sgrl, mgrl, ngrl, and each baseline as published (<name>_published, e.g. dqn_published)')
-    train.add_argument('--mode', default='conditioned',
-                       help='conditioned (one network for every mode, trained on all by relabelling) or a '
-                            'mode of config/modes.yaml (a per-mode network)')
+    renamed(train, '--mode', train.add_argument(
+        '--conditioning', default='conditioned',
+        help='conditioned (one network for every mode, trained on all by relabelling) or a mode of '
+             'config/modes.yaml (a network for that mode alone)'))
     train.add_argument('--episodes', type=COUNT, default=None,
                        help="RL episodes (default: config/training.yaml's episodes; refused when the config's budget "
                             "is environment_steps)")
@@ -89,8 +90,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                             'runs/<algorithm>[_options]_<mode>_seed<seed>)')
     train.add_argument('--resume', type=checkpoint, default=None,
                        help='a last.pt to continue from (default: a new run)')
-    train.add_argument('--init', type=checkpoint, default=None,
-                       help='a policy.pt whose network starts the RL phase (no pre-training; default: a new network)')
+    train.add_argument('--init', type=policy, default=None,
+                       help='a policy whose network starts the RL phase (no pre-training): a directory name under '
+                            'policies/ or the path of a policy directory or of a checkpoint (default: a new network)')
     train.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml)')
     train.add_argument('--action-space', choices=['grid', 'options'], default='grid',
                        help='the 81-action grid (paper 000) or options (config/env.yaml options: a lane intent x a '
@@ -109,8 +111,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         epilog='example:\n  exit-decision anchor --policy runs/seed_1/policy.pt --policy runs/seed_2/policy.pt '
                '--policy runs/seed_3/policy.pt --kappa 0 --kappa 1 --margin 0 --margin 0.05 --out runs/anchored')
     config_options(anchor)
-    anchor.add_argument('--policy', type=checkpoint, action='append', required=True,
-                        help='a member: a policy.pt of a conditioned run over options (repeat: one per training seed)')
+    anchor.add_argument('--policy', type=policy, action='append', required=True,
+                        help='a member, a conditioned run over options: its name under policies/, its directory or its policy.pt (repeat: one per training seed)')
     anchor.add_argument('--kappa', type=number(float, 0.0), action='append', default=None,
                         help='a width of the lower bound, in the members\' standard deviations (repeat; default: 0 1 2)')
     anchor.add_argument('--margin', type=number(float, 0.0), action='append', default=None,

@@ -41,6 +41,12 @@ def default_config_dir() -> Path:
                           'install\'s setup script, or pass --config-dir') from None
 
 
+def default_rviz_config() -> Path:
+    """The shipped RViz view of the stack's markers (rviz/exit_decision.rviz): the checkout's or
+    the install's, beside its config/."""
+    return default_config_dir().parent / 'rviz' / 'exit_decision.rviz'
+
+
 #: PyYAML's safe loader in C (libyaml, in PyYAML's wheels) where present: the same data, parsed
 #: faster; every node loads config/ at start (load_project: 6 ms, 39 ms with the Python loader)
 SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)

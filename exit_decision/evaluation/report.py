@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -250,6 +250,19 @@ def _body(page: Path) -> str:
     return page.read_text().split('\n', 2)[2].strip()
 
 
+def benchmark_lines(benchmarks: Path, relative: Callable[[Path], str]) -> list[str]:
+    """The results page's speed section: a link to the benchmarks' logs (``benchmarks``, the
+    output of ``exit-decision bench``, kept whole there), not a copy of them; none without them."""
+    if not benchmarks.is_file():
+        return []
+    performance = benchmarks.parent.parent / 'performance.md'
+    return ['## Speed of the software', '',
+            f'The logs of `exit-decision bench` (each block after its `$` command): '
+            f'[`{relative(benchmarks)}`]({relative(benchmarks)})'
+            + (f'; what each figure means, the targets and the latest figures: [`{performance.name}`]'
+               f'({relative(performance)})' if performance.is_file() else '') + '.', '']
+
+
 def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
                  figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]],
                  options_dir: Path | None = None) -> Path:
@@ -289,9 +302,7 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
     if tradeoff.exists():
         parts += ['## Trade-off from one checkpoint', '', f'![tradeoff]({relative(tradeoff)})', '',
                   f'Values: [`{relative(tradeoff_dir)}/tradeoff.csv`]({relative(tradeoff_dir)}/tradeoff.csv).', '']
-    benchmarks = evaluation_dir.parent / 'benchmarks.txt'
-    if benchmarks.exists():
-        parts += ['## Speed of the software', '', '```', benchmarks.read_text().strip(), '```', '']
+    parts += benchmark_lines(evaluation_dir.parent / 'benchmarks.txt', relative)
     figures = sorted(figures_dir.glob('*.png'))
     if figures:
         parts += ['## Figures', '', 'Made by `exit-decision plot`.', '']

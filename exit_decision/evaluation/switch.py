@@ -68,33 +68,39 @@ def switch_windows(steps: Iterable[tuple[float, list[VehicleState]]], switch_tim
     return figures(sums['before']), figures(sums['after'])
 
 
-def policy_steps(env: ExitDecisionEnv, driver: Driver, seed: int, until: float,
-                 switch: tuple[float, Mode] | None = None) -> Steps:
-    """The (time, vehicles) of every step of one episode in the environment (no ROS) up to
-    ``until`` [s], the driver in the mode it was given, or from ``switch`` = (time, mode) on in
-    that one (every option held ends there, as in the decision node)."""
-    steps: Steps = []
+@dataclass
+class PolicyEpisode:
+    """One episode in the environment: every step's (time, vehicles), and its reward vectors
+    summed before the switch and from it on (the whole episode's in ``before`` without one)."""
+    steps: Steps
+    before: np.ndarray      # (4, 2)
+    after: np.ndarray       # (4, 2)
+
+
+def policy_steps(env: ExitDecisionEnv, driver: Driver, seed: int, until: float = float('inf'),
+                 switch: tuple[float, Mode] | None = None) -> PolicyEpisode:
+    """One episode in the environment (no ROS) up to ``until`` [s] (default: its end), the
+    driver in the mode it was given, or from ``switch`` = (time, mode) on in that one (every
+    option held ends there, as in the decision node)."""
+    run = PolicyEpisode([], np.zeros((4, 2)), np.zeros((4, 2)))
+    switched = False
 
     def on_start() -> None:
-        steps.append((env.sim.state.time, list(env.sim.snapshot.vehicles)))
+        run.steps.append((env.sim.state.time, list(env.sim.snapshot.vehicles)))
 
     def on_step(decision: StepDecision, info: dict, terminated: bool, truncated: bool) -> bool:
-        nonlocal switch
-        steps.extend((result.time, result.vehicles) for result in info['step_results'])
-        if switch is not None and env.sim.state.time >= switch[0] - 1e-9:
+        nonlocal switched
+        per_row, shared = info['reward_vector']
+        if switched:
+            run.after += per_row.sum(0) + shared
+        else:
+            run.before += per_row.sum(0) + shared
+        run.steps.extend((result.time, result.vehicles) for result in info['step_results'])
+        if switch is not None and not switched and env.sim.state.time >= switch[0] - 1e-9:
             driver.set_mode(switch[1])
-            switch = None
-        return steps[-1][0] >= until
+            switched = True
+        return run.steps[-1][0] >= until
 
     play_episode(env, driver, seed, on_step, on_start)
-    return steps
+    return run
 
-
-def switch_table(runs: list[tuple[str, tuple[WindowFigures, WindowFigures]]], window: float) -> str:
-    """(label, (before, after)) of each run, as a Markdown table."""
-    rows = ['| CAVs on the road at the switch | speed [m/s] | time headway [s] | hard brakings |',
-            '|---|---:|---:|---:|']
-    for run, (before, after) in runs:
-        for side, figures in ((f'{window:g} s before', before), (f'{window:g} s after', after)):
-            rows.append(f'| {run}, {side} | {figures.speed:.2f} | {figures.headway:.2f} | {figures.hard_brakings} |')
-    return '\n'.join(rows)

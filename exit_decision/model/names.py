@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-#: the mode of a mode-conditioned training run (``exit-decision train --mode conditioned``)
+#: the conditioning of a mode-conditioned training run (``exit-decision train --conditioning conditioned``)
 CONDITIONED = 'conditioned'
 #: run names and algorithms of mode-conditioned policies end so: policies/mdgqn_conditioned/policy.pt
 CONDITIONED_SUFFIX = f'_{CONDITIONED}'

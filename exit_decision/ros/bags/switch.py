@@ -1,5 +1,6 @@
 """A mode switch as a bag recorded it: the first decision in the new mode, and the states of
-that episode around it (for ``evaluation.switch.switch_windows``)."""
+that episode around it (for ``evaluation.switch.switch_windows``); and what it did, beside the
+same seed in the environment with and without it (``switch_outcome``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,7 +13,7 @@ from exit_decision.ros.messages.conversions import states_from_msg
 from exit_decision.ros.topics import COMMANDS_TOPIC, STATES_TOPIC
 
 if TYPE_CHECKING:
-    from exit_decision.evaluation.switch import Steps
+    from exit_decision.evaluation.switch import Steps, WindowFigures
 
 
 @dataclass(frozen=True)
@@ -47,38 +48,58 @@ def recorded_switch(bag: Path, config: ProjectConfig) -> RecordedSwitch | None:
     return RecordedSwitch(switched_in, step, step * dt, before, after, steps if episode == switched_in else [])
 
 
-def switch_report(bag: Path, config: ProjectConfig, policy_dir: Path, algorithm: str, seed: int,
-                  window: float = 10.0) -> str:
-    """What the first switch in ``bag`` did to the CAVs on the road at it (``window`` s before and
-    after): as the stack drove it, and the same seed in the environment with the same switch and
-    without it (the mode before throughout), like for like; a line saying so without a switch."""
+@dataclass(frozen=True)
+class SwitchOutcome:
+    """A recorded switch beside the same seed in the environment, with the same switch and
+    without it (the mode before throughout): each run's (before, after) figures of the CAVs on
+    the road at it, and the returns of the run with the switch under each mode's weights for
+    the part of the episode that mode drove."""
+    switch: RecordedSwitch
+    seed: int
+    window: float                                     # [s] each side of the switch
+    bag: tuple[WindowFigures, WindowFigures]
+    switched: tuple[WindowFigures, WindowFigures]     # environment, the same switch
+    kept: tuple[WindowFigures, WindowFigures]         # environment, the mode before throughout
+    returns: tuple[float, float]                      # under before's weights until the switch, after's from it
+    last_step: int                                    # the episode's last step (environment, the same switch)
+
+
+def switch_outcome(bag: Path, config: ProjectConfig, policy_dir: Path, algorithm: str, seed: int,
+                   window: float = 10.0) -> SwitchOutcome | None:
+    """What the first switch in ``bag`` did (None: its decisions keep one mode): as the stack
+    drove it, and the same seed in the environment with the same switch and without it, like
+    for like, each to the episode's end."""
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.switch import policy_steps, switch_table, switch_windows
+    from exit_decision.evaluation.switch import policy_steps, switch_windows
     from exit_decision.driving.policy import policy_driver
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.names import planned, policy_path
     from exit_decision.model.policy import ACTION_SPACES, load_controller
+    from exit_decision.reward import scalar
 
     switch = recorded_switch(bag, config)
     if switch is None:
-        return f'{bag}: its decisions keep one mode: no switch to show'
+        return None
     threshold = config.scenario.emergency_braking_threshold
     modes = ModeWeights(config)
     env = ExitDecisionEnv(config, mode=switch.before)
-    figures = [(f'the stack (bag), {switch.before} -> {switch.after}',
-                switch_windows(switch.steps, switch.time, window, threshold))]
     try:
         which = planned(algorithm, switch.before)
         controller = load_controller(config, policy_path(policy_dir, *which), env.shield, env.planner, which,
                                      ACTION_SPACES)
         driver, episode_seed = policy_driver(controller, config), seed + switch.episode
-        for label, after in ((f'environment, {switch.before} -> {switch.after}', switch.after),
-                             (f'environment, {switch.before} throughout', None)):
+        runs = []
+        for after in (switch.after, None):
             driver.set_mode(modes.mode(switch.before))
-            steps = policy_steps(env, driver, episode_seed, switch.time + window,
-                                 None if after is None else (switch.time, modes.mode(after)))
-            figures.append((label, switch_windows(steps, switch.time, window, threshold)))
+            runs.append(policy_steps(env, driver, episode_seed,
+                                     switch=None if after is None else (switch.time, modes.mode(after))))
+        weights = {name: env.reward_fn.weights(config.mode(name)) for name in (switch.before, switch.after)}
     finally:
         env.close()
-    return (f'the switch {switch.before} -> {switch.after} at t = {switch.time:.1f} s (step {switch.step}) of seed '
-            f'{episode_seed}, {figures[0][1][0].cavs} CAVs on the road:\n' + switch_table(figures, window))
+    switched, kept = runs
+    return SwitchOutcome(switch, episode_seed, window, switch_windows(switch.steps, switch.time, window, threshold),
+                         switch_windows(switched.steps, switch.time, window, threshold),
+                         switch_windows(kept.steps, switch.time, window, threshold),
+                         (float(scalar(switched.before, weights[switch.before])),
+                          float(scalar(switched.after, weights[switch.after]))),
+                         round(switched.steps[-1][0] / config.scenario.step_length))

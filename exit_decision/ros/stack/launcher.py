@@ -24,14 +24,15 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from exit_decision_msgs.msg import EpisodeEvent, VehicleStateArray
+from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, VehicleStateArray
 from rcl_interfaces.srv import SetParameters
 
 from exit_decision.ros.probe import ProbeNode
-from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
+from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
 from exit_decision.ros.messages.conversions import metrics_from_event
 from exit_decision.ros.stack.cpu_affinity import pinned
 from exit_decision.ros.stack.node_table import BRIDGE, cores, plan
@@ -68,10 +69,23 @@ def start_node(name: str, parameters: dict[str, object], log: Path) -> subproces
 
 
 @dataclass
+class SwitchSteps:
+    """Where one mode switch happened, in steps of the first episode: the launcher asks for it
+    at the first state it sees at or past the step asked for, and the decision node's next
+    decision (every decision_interval steps) after the service's answer is the first in the
+    new mode."""
+    asked: int                     # --switch-at
+    requested: int = -1            # the step of the state the launcher had seen when it called the service
+    answered: int = -1             # the step it had seen when the answer came
+    landed: int = -1               # the first command in the new mode (-1: none seen)
+
+
+@dataclass
 class StackRun:
     bag_path: Path
     episodes: list[dict[str, float]] = field(default_factory=list)
     mode_switch: str = ''          # what the set_parameters call answered
+    switch: SwitchSteps | None = None
     return_codes: dict[str, int] = field(default_factory=dict)
     stopped_by: str = ''           # SIGINT or SIGTERM: the launcher was stopped before the run ended
 
@@ -142,14 +156,19 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
               switch_to: str | None = None, switch_at_step: int = 300, timing: str = 'synchronous',
               config_dir: str = '', policy_dir: str = '', extra: dict[str, dict] | None = None,
               timeout: float = 1800.0, visualizer: bool = True, use_sim_time: bool = False,
-              thread_priority: int = 0, cpu_split: bool = True, compression: str = 'zstd') -> StackRun:
+              thread_priority: int = 0, cpu_split: bool = True, compression: str = 'zstd',
+              say: Callable[[str], None] | None = None, progress_every: int = 200,
+              step_length: float = 0.1) -> StackRun:
     """Run the stack for ``episodes`` episodes; switch to mode ``switch_to`` at ``switch_at_step``
     of the first episode (through the parameter service); ``modes``: the modes whose policies
     the decision node loads (empty: every mode); ``visualizer``: also publish the
     scene as markers (recorded in the bag); ``use_sim_time``: every node on the bridge's /clock;
     ``thread_priority``: real-time priority of the nodes on the decision path (0: normal);
     ``cpu_split``: the decision path and the onlookers (this launcher's helper node among them)
-    on cores of their own; ``compression``: the bag's chunk compression (none, zstd or lz4).
+    on cores of their own; ``compression``: the bag's chunk compression (none, zstd or lz4);
+    ``say``: called with a line per phase (nodes up, every ``progress_every`` steps of an
+    episode with its mode, the switch asked and where it landed, each episode's end, the bag
+    closed), steps shown in seconds with ``step_length``.
     SIGINT or SIGTERM ends the run early (``StackRun.stopped_by``); a node exiting before the
     end raises StackError. Either way every node is stopped and the bag closed."""
     if bag_path.exists():
@@ -170,19 +189,38 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
     run = StackRun(bag_path)
     probe = ProbeNode('stack_launcher')
     node = probe.node
-    state = {'step': -1, 'episode': -1, 'ended': 0}
+    state = {'step': -1, 'episode': -1, 'ended': 0, 'mode': mode, 'shown': (-1, 0)}
+    say = say or (lambda line: None)
+    run.switch = None if switch_to is None else SwitchSteps(switch_at_step)
 
     def on_event(msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_ENDED:
             state['ended'] += 1
             run.episodes.append(metrics_from_event(msg))
+            say(f'episode {msg.episode} (seed {msg.seed}) ended at step {msg.steps}: Exit-1 rate {msg.p_cav:.2f}, '
+                f'CAV collisions {msg.p_collision_cav:.2f}')
+        elif msg.event == EpisodeEvent.EVENT_STARTED:
+            say(f'episode {msg.episode} (seed {msg.seed}) started in mode {state["mode"]}')
 
     def on_states(raw: bytes) -> None:   # the progress only: (episode, step) read without decoding
         with contextlib.suppress(InputError):   # a message too short for them is no progress
-            state['episode'], state['step'] = episode_and_step(raw)
+            state['episode'], state['step'] = episode, step = episode_and_step(raw)
+            mark = (episode, step // progress_every)
+            if mark[1] and mark != state['shown']:
+                state['shown'] = mark
+                say(f'episode {episode}: step {step} ({step * step_length:.0f} s simulated), mode {state["mode"]}')
+
+    def on_commands(msg: CavCommandArray) -> None:   # the switch's landing: the first decision in the new mode
+        if run.switch and run.switch.requested >= 0 and run.switch.landed < 0 and msg.mode == switch_to:
+            run.switch.landed = msg.step
+            state['mode'] = switch_to
+            say(f'the decision node decides in {switch_to} from step {msg.step} on '
+                f'({msg.step * step_length:.1f} s simulated)')
 
     node.create_subscription(EpisodeEvent, EPISODE_TOPIC, on_event, EVENT_QOS)
     node.create_subscription(VehicleStateArray, STATES_TOPIC, on_states, STREAM_QOS, raw=True)
+    if switch_to is not None:
+        node.create_subscription(CavCommandArray, COMMANDS_TOPIC, on_commands, STREAM_QOS)
     client = node.create_client(SetParameters, '/decision_node/set_parameters')
     onlooking = contextlib.ExitStack()   # this process back on its cores however the run ends
     # after the helper node's rclpy.init (whose own SIGINT handler would take the signal)
@@ -199,6 +237,7 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 raise StackError(f'the nodes did not come up within 120 s (logs: {log_dir})')
             probe.spin_once(0.2)
         if not stopping:
+            say(f'nodes up: {", ".join(nodes)}; starting {BRIDGE} (node logs: {log_dir})')
             launcher.start(BRIDGE)
             # once every node is started: a node takes only cores it could use at its start
             onlooking.enter_context(pinned(split and split[1]))
@@ -210,10 +249,16 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
                 raise StackError(f'the stack did not finish within {timeout} s (logs: {log_dir})')
             probe.spin_once(0.05)
             if not switched and state['episode'] == 0 and state['step'] >= switch_at_step:
+                run.switch.requested = state['step']
+                say(f'switch {mode} -> {switch_to} asked for at step {switch_at_step}: requested at step '
+                    f'{state["step"]} (/decision_node/set_parameters)')
                 result = probe.set_parameter(client, 'mode', switch_to, timeout=10.0)
-                run.mode_switch = (f'mode {mode} -> {switch_to} at step {state["step"]}: '
+                run.switch.answered = state['step']
+                run.mode_switch = (f'mode {mode} -> {switch_to} at step {run.switch.requested}: '
                                    + ('accepted' if result and result.successful else
                                       f'refused ({result.reason if result else "no answer"})'))
+                say(f'switch {mode} -> {switch_to}: {run.mode_switch.partition(": ")[2]} (answered by step '
+                    f'{state["step"]})')
                 switched = True
         if not stopping:
             launcher.check_alive(bridge_too=launcher.processes[BRIDGE].returncode != 0)
@@ -225,6 +270,9 @@ def run_stack(*, mode: str, algorithm: str, episodes: int, seed: int, bag_path: 
         with onlooking:
             run.return_codes = launcher.stop()
             probe.close()
+    if (bag_path / 'metadata.yaml').is_file():   # what the recorder writes last, on closing the bag
+        size = sum(path.stat().st_size for path in bag_path.rglob('*') if path.is_file()) if bag_path.is_dir() else 0
+        say(f'bag closed: {bag_path} ({size / 1e6:.2f} MB)')
     return run
 
 

@@ -65,6 +65,9 @@ ARGUMENTS: dict[str, Argument] = {
     # the recorder's default; the values of COMPRESSIONS in ros/bags/storage.py (this table imports no rclpy)
     'compression': Argument('zstd', 'mcap chunk compression of the bag: zstd or none', choices=('zstd', 'none')),
     'visualizer': Argument('true', 'publish the scene as markers on /exit_decision/markers (true or false)', bool),
+    # no node of the table takes it: the launch file starts rviz2 beside them (`exit-decision stack` never does)
+    'rviz': Argument('false', 'also start rviz2 with the shipped view of the markers, share/exit_decision/rviz/'
+                              'exit_decision.rviz (true or false); closing it leaves the stack running', bool),
     'use_sim_time': Argument('false', "every node takes its time from the bridge's /clock (true or false)", bool),
     'thread_priority': Argument('0', realtime.DESCRIPTION, int),
     'cpu_split': Argument('true', cpu_affinity.SPLIT_DESCRIPTION, bool),
