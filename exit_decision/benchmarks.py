@@ -41,8 +41,10 @@ def bench_simulation(config: ProjectConfig, episodes: int, seed: int) -> str:
 
 #: the recipes ``bench learning`` measures: (label, algorithm, action space, override file under config/)
 LEARNING_RECIPES = (('the grid\'s conditioned MDGQN (demonstrations)', 'mdgqn', 'grid', None),
-                    ('the shipped recipe: the conditioned MDGQN over options, no demonstrations', 'mdgqn', 'options',
-                     'overrides/options_no_demonstrations.yaml'))
+                    ('the conditioned MDGQN over options, no demonstrations (Q-learning)', 'mdgqn', 'options',
+                     'overrides/options_no_demonstrations.yaml'),
+                    ('the conditioned MDGQN over options, one step over the prior', 'mdgqn', 'options',
+                     'overrides/options_prior.yaml'))
 
 
 def bench_learning(config_dir: Path | None, scenario_override, overrides, seed: int, episodes: int = 2) -> str:
@@ -73,6 +75,7 @@ def _learning_figures(config, algorithm: str, action_space: str, seed: int, epis
 
     from exit_decision.graph import TrafficGraph
     from exit_decision.learning.trainer import Trainer
+    from exit_decision.learning.validation import validation_seeds
     from exit_decision.model.names import CONDITIONED
     from exit_decision.model.policy import q_values
 
@@ -83,6 +86,8 @@ def _learning_figures(config, algorithm: str, action_space: str, seed: int, epis
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(config, algorithm, CONDITIONED, seed, Path(tmp), action_space)
         t = trainer.training
+        if 'prior' in (t.bootstrap, t.exploration.around):   # measured on two seeds (untimed)
+            trainer.use_prior(validation_seeds(2), progress=False)
         for transition in trainer.collector.episode(seed, trainer.agent.online, trainer.episode_mode(), 0.1):
             trainer.experience.add(transition)   # a replay to sample from (untimed)
         for label, updates in (('without', 0), ('with', t.updates_per_decision)):

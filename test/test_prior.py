@@ -62,13 +62,13 @@ def test_the_prior_measured_in_the_environment_drives_the_best_style_of_its_mode
     from exit_decision.driving.episode import play_episode
     from exit_decision.driving.prior import PriorDriver
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.evaluate import measure_prior
+    from exit_decision.evaluation.evaluate import constant_option_episodes, prior_of
     from ros_helpers import small_config_dir
 
     config = load_project(small_config_dir(tmp_path / 'config'))
     env = ExitDecisionEnv(config)
     try:
-        table = measure_prior(env, [7])
+        table = prior_of(env, constant_option_episodes(env, [7]))
         assert list(table.vectors) == list(config.env.options.styles) and table.variant == env.reward_variant
         modes = ModeWeights(config)
         driver = PriorDriver(table, OptionSpace(config, env.shield, env.planner), modes.mode('AGGI'))

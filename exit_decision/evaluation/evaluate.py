@@ -78,16 +78,20 @@ def best_fixed_driver(returns: Mapping[str, Sequence[float]]) -> str:
     return max(returns, key=lambda name: float(np.mean(returns[name])))
 
 
-def measure_prior(env: ExitDecisionEnv, seeds: Sequence[int], desc: str | None = None) -> PriorTable:
-    """The prior's table (``driving.prior``): every style of config/env.yaml's options as a
-    constant option on ``seeds``, each style's mean reward vector under ``env``'s scoring variant."""
+def constant_option_episodes(env: ExitDecisionEnv, seeds: Sequence[int], desc: str | None = None) -> dict[str, list[dict]]:
+    """Every style of config/env.yaml's options as a constant option on ``seeds``: its episodes
+    (what the prior is measured from, and validation's best fixed driver chosen from)."""
     space = OptionSpace(env.config, env.shield, env.planner)
-    vectors = {}
-    for style in env.config.env.options.styles:
-        episodes = play_episodes(env, fixed.constant_option(space, style), seeds,
-                                 desc=desc and f'{desc}: {style}')
-        vectors[style] = np.mean([e['reward_vector'] for e in episodes], axis=0)
-    return PriorTable(env.reward_variant, tuple(seeds), vectors)
+    return {style: play_episodes(env, fixed.constant_option(space, style), seeds, desc=desc and f'{desc}: {style}')
+            for style in env.config.env.options.styles}
+
+
+def prior_of(env: ExitDecisionEnv, by_style: Mapping[str, list[dict]]) -> PriorTable:
+    """The prior's table (``driving.prior``) of the constant options' episodes: each style's mean
+    reward vector under ``env``'s scoring variant."""
+    seeds = tuple(e['seed'] for e in next(iter(by_style.values())))
+    return PriorTable(env.reward_variant, seeds,
+                      {style: np.mean([e['reward_vector'] for e in episodes], axis=0) for style, episodes in by_style.items()})
 
 
 @dataclass

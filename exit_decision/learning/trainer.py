@@ -179,11 +179,12 @@ class Trainer:
             self.agent.set_learning_rate(self.training.fine_tune_learning_rate)
         validation = self.training.validation
         seeds = validation_seeds(validation.episodes)
+        styles = None
         if self.action_space == 'options':   # the prior every checkpoint carries (driving.prior)
-            self.use_prior(seeds, progress)
+            styles = self.use_prior(seeds, progress)
         elif 'prior' in (self.training.bootstrap, self.training.exploration.around):
             raise ValueError('bootstrap and exploration around the prior need --action-space options')
-        task = ValidationTask(self.config, self.validation_modes, seeds, self.action_space)
+        task = ValidationTask(self.config, self.validation_modes, seeds, self.action_space, styles)
         with Validator(task, validation.parallel, self.env) as validator:
             if self.state.episode == 0:
                 validator.submit(self.checkpoints.save_candidate(self.state))   # the pre-trained policy too
@@ -217,17 +218,24 @@ class Trainer:
                                       if init is not None else 'demonstrations, pre-training, RL and validation')
         return self.out_dir / 'policy.pt'
 
-    def use_prior(self, seeds: list[int], progress: bool) -> None:
+    def use_prior(self, seeds: list[int], progress: bool) -> dict[str, list[dict]]:
         """Measure the prior on the validation seeds: every checkpoint carries it; with
         ``bootstrap: prior`` the targets bootstrap on its option, with ``exploration.around:
-        prior`` the episodes explore around it."""
-        from exit_decision.evaluation.evaluate import measure_prior
-        prior = measure_prior(self.env, seeds, desc='the prior' if progress else None)
+        prior`` the episodes explore around it. Returns the constant options' episodes it was
+        measured from (validation chooses its best fixed drivers from them)."""
+        from exit_decision.evaluation.evaluate import constant_option_episodes, prior_of
+        single, self.env.sim.single_agent = self.env.sim.single_agent, False   # every CAV drives the style
+        try:
+            by_style = constant_option_episodes(self.env, seeds, desc='the prior' if progress else None)
+        finally:
+            self.env.sim.single_agent = single
+        prior = prior_of(self.env, by_style)
         self.checkpoints.description['prior'] = prior.to_metadata()
         self.collector.prior = prior
         if self.training.bootstrap == 'prior':
             options = prior.option_indices(self.env.options)
             self.experience.prior_actions = lambda multipliers: options[prior.best_indices(multipliers)]
+        return by_style
 
     def record(self, validated: list[tuple[Path, dict]]) -> None:
         """Log finished validations; the best candidate so far becomes policy.pt."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 import multiprocessing
 import shutil
 from concurrent.futures import Future, ProcessPoolExecutor
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,6 +44,9 @@ class ValidationTask:
     modes: list[str]
     seeds: list[int]
     action_space: str = 'grid'   # options: the teacher is the best fixed driver of each mode
+    #: over options, the constant options' episodes on ``seeds`` when the caller played them
+    #: already (the trainer, measuring its prior); None: validation plays them
+    style_episodes: Mapping[str, list[dict]] | None = None
 
 
 _worker: dict = {}   # per process: the env and the teacher's episodes (libsumo: one simulation per process)
@@ -52,15 +56,13 @@ def _teacher_episodes(task: ValidationTask, env) -> dict[str, list[dict]]:
     """Per validation mode, the episodes of the driver a candidate is judged against: the
     neutral rule-based driver on the grid; over options, the best fixed driver of that mode
     (the constant option, one style on the route's lane plan, of highest mean return)."""
-    from exit_decision.agents.options import OptionSpace
     from exit_decision.driving import fixed
-    from exit_decision.evaluation.evaluate import best_fixed_driver, play_episodes, scored_episodes
+    from exit_decision.evaluation.evaluate import (best_fixed_driver, constant_option_episodes, play_episodes,
+                                                   scored_episodes)
 
     if task.action_space == 'grid':
         return dict.fromkeys(task.modes, play_episodes(env, fixed.rule_based(env), task.seeds))
-    space = OptionSpace(task.config, env.shield, env.planner)
-    by_style = {style: play_episodes(env, fixed.constant_option(space, style), task.seeds)
-                for style in task.config.env.options.styles}
+    by_style = task.style_episodes or constant_option_episodes(env, task.seeds)
 
     def best(mode: str) -> list[dict]:
         weights = env.reward_fn.weights(task.config.mode(mode))
