@@ -32,6 +32,8 @@ from exit_decision.input_checks import InputError, StateLimits
 from exit_decision.model.selection import SELECTION_PARAMETERS
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
+from exit_decision.ros.intake import Intake
+from exit_decision.ros.messages.sizes import limits_of
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, options_to_msg, overrides_to_msg
 from exit_decision.ros.parameters import (declare_config, declare_cpu_affinity, declare_policy_selection,
@@ -64,6 +66,7 @@ class DecisionNode(Node):
         self.add_post_set_parameters_callback(self.apply_parameters)
         self.last_decided: tuple[int, int] = (-1, -1)
         self.diagnostics = Diagnostics(self, 'decision_node')
+        self.intake = Intake(self, self.diagnostics, limits_of(config))
         self.pairing = StepPairing(config.scenario.max_steps, self.interval, self.diagnostics.count)
         self.drivers: dict = {}       # (algorithm, mode) -> driving.policy.PolicyDriver, once loaded
         self.loaded: dict | Exception | None = None   # what the loading thread hands over (drivers or error)
@@ -96,9 +99,9 @@ class DecisionNode(Node):
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
-            self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-            self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
-            self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+            self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+            self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         for callback in self.when_loaded:
             callback()
         self.get_logger().info(f'loaded {len(self.drivers)} policies from {self.policy_dir}; '
@@ -150,12 +153,12 @@ class DecisionNode(Node):
 
     def on_graph(self, msg: GraphMsg) -> None:
         gate, key = self.pairing.graph_gate, (msg.episode, msg.step)
-        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs'):
+        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs', GRAPH_TOPIC):
             return
         try:
             graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)
         except InputError as error:
-            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
+            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error), GRAPH_TOPIC)
             return
         if gate.begins(*key):
             self.begin_episode(msg.episode)
