@@ -39,7 +39,8 @@ from exit_decision.ros.intake import Intake
 from exit_decision.ros.messages.sizes import limits_of
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
+                                      MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC,
+                                      STREAM_QOS)
 from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, graph_from_msg, options_from_msg,
                                                     overrides_from_msg)
 from exit_decision.scenario.geometry import RoadGeometry
@@ -103,8 +104,10 @@ class Visualizer(Node):
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (executor.Waiter) empties the queue of the subscription created first first
         self.events = intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
-        intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS, raw=True)
+        # the nodes' depth, 1000 (at most 1000 x the states' size limit, 18 MB for N = 60): behind for a
+        # while under a flood from several publishers, it would lose messages no counter can see
+        # (rclpy says no message's publisher), its own stream's among them
+        intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         frames = self.frames
 
         def draw_graph(msg: TrafficGraph) -> None:
