@@ -14,7 +14,7 @@ from rclpy.node import Node
 from exit_decision.input_checks import InputError
 from exit_decision.ros.executor import take_waiting
 from exit_decision.ros.messages.states_cdr import decode_states
-from exit_decision.ros.topics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, STATES_TOPIC
+from exit_decision.ros.topics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.step_gaps import episode_and_step
 
 REJECT_LOG_PERIOD = 5.0   # [s] a node logs a rejected message of one kind at most this often
@@ -24,6 +24,8 @@ REJECT_LOG_PERIOD = 5.0   # [s] a node logs a rejected message of one kind at mo
 CAUSES = ('too_large', 'undecodable', 'out_of_sequence', 'invalid')
 
 
+#: the kinds of message a node checks against its step gate, and their topics
+STEPPED = {'states': STATES_TOPIC, 'graphs': GRAPH_TOPIC}
 DROP_SUFFIXES = tuple(f'_{cause}' for cause in CAUSES)
 
 
@@ -79,9 +81,9 @@ class Diagnostics:
             self.reject(what, what, str(error), topic, 'undecodable')
             return None
 
-    def out_of_sequence(self, gate, events, episode: int, step: int, what: str, topic: str) -> bool:
-        """Reject and count (``rejected_out_of_sequence_<what>``, ``dropped_<topic>_out_of_sequence``)
-        a message of ``topic`` whose (episode, step)
+    def out_of_sequence(self, gate, events, episode: int, step: int, what: str) -> bool:
+        """Reject and count (``rejected_out_of_sequence_<what>``, ``dropped_<topic>_out_of_sequence``
+        of its topic, ``STEPPED``) a message of ``what`` whose (episode, step)
         ``gate`` (an ``input_checks.StepGate``) refuses; True if it did. A message of another
         episode than the gate's, or a step back (the same episode again: a looped bag's next
         pass), first takes what waits on ``events`` (the episode-events subscription): its
@@ -90,7 +92,7 @@ class Diagnostics:
             take_waiting(events)
         reason = gate.refuse(episode, step)
         if reason:
-            self.reject(f'out_of_sequence_{what}', what, reason, topic, 'out_of_sequence')
+            self.reject(f'out_of_sequence_{what}', what, reason, STEPPED[what], 'out_of_sequence')
         return reason is not None
 
     def take_states(self, raw: bytes, gate, events, limits, every: int = 1):
@@ -103,7 +105,7 @@ class Diagnostics:
         if key is None or key[1] % every:
             return None
         episode, step = key
-        if self.out_of_sequence(gate, events, episode, step, 'states', STATES_TOPIC):
+        if self.out_of_sequence(gate, events, episode, step, 'states'):
             return None
         cause = 'undecodable'   # bytes that are no well-formed VehicleStateArray, then fields off the scenario
         try:

@@ -32,7 +32,7 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
 
 from exit_decision.ros.diagnostics import Diagnostics
-from exit_decision.ros.messages.sizes import DEFAULT_LIMIT
+from exit_decision.ros.messages.sizes import DEFAULT_LIMIT, limits_of  # noqa: F401 (limits_of: for the nodes)
 
 
 def short(topic: str) -> str:

@@ -11,10 +11,9 @@ states of its step and publishes the commands (stamped with mode, algorithm and 
 then the shield's overrides (grid) or the options held (/exit_decision/cav_options).
 
 Composed with the graph builder (``graph_and_decision``), it is handed each step's checked
-states and graph; alone, it subscribes to both and takes a message only if it can follow the
-current episode and step (from an episode EVENT_STARTED announced) and every field fits;
-otherwise it is rejected whole, counted on /diagnostics, and changes nothing.
-"""
+states and graph; alone, it subscribes to both (``intake``) and takes a message only if it can
+follow the current episode and step (from an episode EVENT_STARTED announced) and every field
+fits; otherwise it is rejected whole, counted on /diagnostics, and changes nothing."""
 from __future__ import annotations
 
 import threading
@@ -32,8 +31,7 @@ from exit_decision.input_checks import InputError, StateLimits
 from exit_decision.model.selection import SELECTION_PARAMETERS
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake
-from exit_decision.ros.messages.sizes import limits_of
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, options_to_msg, overrides_to_msg
 from exit_decision.ros.parameters import (declare_config, declare_cpu_affinity, declare_policy_selection,
@@ -66,7 +64,6 @@ class DecisionNode(Node):
         self.add_post_set_parameters_callback(self.apply_parameters)
         self.last_decided: tuple[int, int] = (-1, -1)
         self.diagnostics = Diagnostics(self, 'decision_node')
-        self.intake = Intake(self, self.diagnostics, limits_of(config))
         self.pairing = StepPairing(config.scenario.max_steps, self.interval, self.diagnostics.count)
         self.drivers: dict = {}       # (algorithm, mode) -> driving.policy.PolicyDriver, once loaded
         self.loaded: dict | Exception | None = None   # what the loading thread hands over (drivers or error)
@@ -99,6 +96,7 @@ class DecisionNode(Node):
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
+            self.intake = Intake(self, self.diagnostics, limits_of(self.config))
             self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
             self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
             self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
@@ -153,7 +151,7 @@ class DecisionNode(Node):
 
     def on_graph(self, msg: GraphMsg) -> None:
         gate, key = self.pairing.graph_gate, (msg.episode, msg.step)
-        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs', GRAPH_TOPIC):
+        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs'):
             return
         try:
             graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)

@@ -44,8 +44,7 @@ from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_
                                             topic_qos, typestore)
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake, short
-from exit_decision.ros.messages.sizes import limits_of
+from exit_decision.ros.intake import Intake, limits_of, short
 from exit_decision.errors import ParameterError
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           describe)

@@ -38,8 +38,7 @@ from exit_decision.config.seeds import TEST_SEED
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import Waiter, run_node, take_waiting
-from exit_decision.ros.intake import Intake
-from exit_decision.ros.messages.sizes import limits_of
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           declare_thread_priority, describe, follow)
 from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,

@@ -35,8 +35,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake
-from exit_decision.ros.messages.sizes import limits_of
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
                                       MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC,

@@ -51,6 +51,7 @@ class Phase:
     target: float                 # [msg/s]
     sent: int = 0
     bytes: int = 0
+    refused: int = 0              # messages the flooders' own middleware would not send (none reached the stack)
     rate: float = 0.0             # [msg/s] reached: the flooders' rates (each its sent over its time), summed
     window: tuple[float, float] = (0.0, 0.0)     # wall clock of the flood
     quiet: tuple[float, float] = (0.0, 0.0)      # wall clock of the phase without it
@@ -239,6 +240,7 @@ def flood(phase: Phase, limit: int, config, flooders: int, subscribers: int, sec
         reports.append(json.loads(out[-1]))
     phase.sent = sum(report['sent'] for report in reports)
     phase.bytes = sum(report['bytes'] for report in reports)
+    phase.refused = sum(report['refused'] for report in reports)
     phase.window = (max(report['start'] for report in reports), min(report['end'] for report in reports))
     phase.rate = sum(report['sent'] / max(report['end'] - report['start'], 1e-9) for report in reports)
 
@@ -268,7 +270,8 @@ def report(run: FloodRun) -> tuple[str, bool]:
         causes = {node: {key.removeprefix(f'dropped_{name}_'): value for key, value in counters.items()
                          if key.startswith(f'dropped_{name}_') and value}
                   for node, counters in phase.counted.items() if node in run.subscribers[phase.topic]}
-        lines.append(f'    {phase.sent} sent; dropped by cause: ' + '; '.join(
+        unsent = f' ({phase.refused} more the flooders\' middleware would not send)' if phase.refused else ''
+        lines.append(f'    {phase.sent} sent{unsent}; dropped by cause: ' + '; '.join(
             f'{node} {", ".join(f"{cause} {value:.0f}" for cause, value in sorted(by.items())) or "none"}'
             for node, by in causes.items()) + ('; every one counted by every subscriber' if counted_ok else
                                                '; NOT COUNTED: ' + ', '.join(f'{node} {value:.0f}'

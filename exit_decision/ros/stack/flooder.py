@@ -1,5 +1,5 @@
 """One flooding process of ``bench flood`` (``stack/flood.py``): pre-serialized messages on one
-topic at a set rate, for a set time, then one JSON line on stdout (sent, bytes, start, end).
+topic at a set rate, for a set time, then one JSON line on stdout (sent, bytes, refused, start, end).
 
 Kinds of message (``payloads``), all serialized once before the flood:
 - ``stale``: well-formed, of the topic's type, from the past: episode 0, step 5 (a decision
@@ -106,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from exit_decision.ros.probe import ProbeNode   # first: the DDS defaults
     from rclpy.duration import Duration
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     from rclpy.qos import QoSProfile
 
     from exit_decision.ros.bags.storage import KNOWN_TOPICS, message_class, topic_qos
@@ -121,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     while publisher.get_subscription_count() < args.subscribers and time.monotonic() < deadline:
         probe.spin_once(0.05)
     time.sleep(max(args.start_at - time.time(), 0.0))
-    sent = size = 0
+    sent = size = refused = 0
     start = time.time()
     began = time.monotonic()
     end = began + args.seconds
@@ -131,14 +132,19 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(min(0.001, end - now))
             continue
         for _ in range(due):
-            message = messages[sent % len(messages)]
-            publisher.publish(message)
+            message = messages[(sent + refused) % len(messages)]
+            try:
+                publisher.publish(message)
+            except _rclpy.RCLError:   # the sender's middleware refuses it (a best-effort sample too large to send)
+                refused += 1
+                continue
             sent += 1
             size += len(message)
     elapsed = time.monotonic() - began
     # what is still in the history reaches the readers before the writer goes (reliable topics)
     publisher.wait_for_all_acked(Duration(seconds=5.0))
-    print(json.dumps({'sent': sent, 'bytes': size, 'start': start, 'end': start + elapsed}), flush=True)
+    print(json.dumps({'sent': sent, 'bytes': size, 'refused': refused, 'start': start, 'end': start + elapsed}),
+          flush=True)
     probe.close()
     return 0
 
