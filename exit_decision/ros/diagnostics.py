@@ -22,11 +22,9 @@ REJECT_LOG_PERIOD = 5.0   # [s] a node logs a rejected message of one kind at mo
 #: bytes that are no such message, a step that cannot follow the episode and step, a field that
 #: does not fit the scenario
 CAUSES = ('too_large', 'undecodable', 'out_of_sequence', 'invalid')
-
-
+DROP_SUFFIXES = tuple(f'_{cause}' for cause in CAUSES)
 #: the kinds of message a node checks against its step gate, and their topics
 STEPPED = {'states': STATES_TOPIC, 'graphs': GRAPH_TOPIC}
-DROP_SUFFIXES = tuple(f'_{cause}' for cause in CAUSES)
 
 
 def drop_key(topic: str, cause: str) -> str:

@@ -51,6 +51,7 @@ class Phase:
     target: float                 # [msg/s]
     sent: int = 0
     bytes: int = 0
+    error: str = ''               # a flooder that failed: what it said
     refused: int = 0              # messages the flooders' own middleware would not send (none reached the stack)
     rate: float = 0.0             # [msg/s] reached: the flooders' rates (each its sent over its time), summed
     window: tuple[float, float] = (0.0, 0.0)     # wall clock of the flood
@@ -236,8 +237,11 @@ def flood(phase: Phase, limit: int, config, flooders: int, subscribers: int, sec
     for process in processes:
         out = process.stdout.read().strip().splitlines()
         if process.returncode or not out:
-            raise RuntimeError(f'a flooder of {phase.topic} ({phase.kind}) failed with code {process.returncode}')
+            phase.error = f'a flooder failed with code {process.returncode}'
+            continue
         reports.append(json.loads(out[-1]))
+    if not reports:
+        return
     phase.sent = sum(report['sent'] for report in reports)
     phase.bytes = sum(report['bytes'] for report in reports)
     phase.refused = sum(report['refused'] for report in reports)
@@ -258,6 +262,9 @@ def report(run: FloodRun) -> tuple[str, bool]:
                float(np.percentile(quiet_waits, 99)) if len(quiet_waits) else math.nan)
         ratio = p99[0] / p99[1] if p99[1] else math.nan
         missing = run.uncounted(phase)
+        if phase.error:
+            ok = False
+            lines.append(f'  {phase.topic} {phase.kind}: FAILED, {phase.error}')
         rate_ok, wait_ok = phase.rate >= phase.target, ratio <= WAIT_RATIO
         counted_ok = not any(missing.values())
         ok &= rate_ok and wait_ok and counted_ok and len(flood_waits) > 0

@@ -38,8 +38,10 @@ def stale_message(topic: str, num_nodes: int, feature_set: str) -> bytes:
     if topic == STATES_TOPIC:
         return encode_states([], episode=STALE_EPISODE, step=STALE_STEP, step_length=0.1)
     msg = message_class(KNOWN_TOPICS[topic])()
-    if hasattr(msg, 'episode'):
-        msg.episode, msg.step = STALE_EPISODE, STALE_STEP
+    if hasattr(msg, 'episode'):   # an EpisodeEvent: episode 0's start announced again
+        msg.episode = STALE_EPISODE
+    if hasattr(msg, 'step'):
+        msg.step = STALE_STEP
     if topic == GRAPH_TOPIC:
         features = len(FEATURE_SETS[feature_set])
         fill_graph(msg, num_nodes, features, feature_set)
