@@ -78,6 +78,8 @@ BAD = [
     ['compare', '--config-dir', 'MISSING'],
     ['bench', 'nope'], ['bench', '--steps', '0'], ['bench', '--episodes', '0'], ['bench', '--seed', '-1'],
     ['bench', '--policy-dir', 'MISSING'], ['bench', '--thread-priority', '-1'],
+    ['bench', '--phase-seconds', '0'], ['bench', '--pairs', '0'], ['bench', '--kind', 'huge'],
+    ['bench', '--flooders', '0'], ['bench', '--huge-mb-per-s', '-1'], ['bench', 'flood', '--topic', '/nope'],
 ]
 
 

@@ -64,7 +64,7 @@ def first_line(error: Exception) -> str:
 
 def topic_qos(topic: str, default: QoSProfile = STREAM_QOS) -> QoSProfile:
     """The QoS the stack's publishers offer on a topic (subscribers must be compatible)."""
-    return {CLOCK_TOPIC: CLOCK_QOS, EPISODE_TOPIC: EVENT_QOS,
+    return {CLOCK_TOPIC: CLOCK_QOS, EPISODE_TOPIC: EVENT_QOS, MARKERS_TOPIC: STREAM_QOS,   # the visualizer's
             '/parameter_events': qos_profile_parameter_events}.get(topic, default)
 
 

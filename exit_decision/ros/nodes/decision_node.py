@@ -11,10 +11,9 @@ states of its step and publishes the commands (stamped with mode, algorithm and 
 then the shield's overrides (grid) or the options held (/exit_decision/cav_options).
 
 Composed with the graph builder (``graph_and_decision``), it is handed each step's checked
-states and graph; alone, it subscribes to both and takes a message only if it can follow the
-current episode and step (from an episode EVENT_STARTED announced) and every field fits;
-otherwise it is rejected whole, counted on /diagnostics, and changes nothing.
-"""
+states and graph; alone, it subscribes to both (``intake``) and takes a message only if it can
+follow the current episode and step (from an episode EVENT_STARTED announced) and every field
+fits; otherwise it is rejected whole, counted on /diagnostics, and changes nothing."""
 from __future__ import annotations
 
 import threading
@@ -32,6 +31,7 @@ from exit_decision.input_checks import InputError, StateLimits
 from exit_decision.model.selection import SELECTION_PARAMETERS
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, options_to_msg, overrides_to_msg
 from exit_decision.ros.parameters import (declare_config, declare_cpu_affinity, declare_policy_selection,
@@ -96,9 +96,10 @@ class DecisionNode(Node):
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
-            self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-            self.diagnostics.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
-            self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+            self.intake = Intake(self, self.diagnostics, limits_of(self.config))
+            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+            self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
+            self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         for callback in self.when_loaded:
             callback()
         self.get_logger().info(f'loaded {len(self.drivers)} policies from {self.policy_dir}; '
@@ -155,7 +156,7 @@ class DecisionNode(Node):
         try:
             graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)
         except InputError as error:
-            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error))
+            self.diagnostics.reject('graphs', f'graph of step {msg.step}', str(error), GRAPH_TOPIC)
             return
         if gate.begins(*key):
             self.begin_episode(msg.episode)

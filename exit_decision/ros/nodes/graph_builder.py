@@ -23,6 +23,7 @@ from rclpy.node import Node
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.parameters import declare_config, declare_cpu_affinity, declare_thread_priority
 from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC
 from exit_decision.ros.messages.conversions import graph_to_msg
@@ -58,6 +59,7 @@ class GraphBuilderNode(Node):
         self.gate = StepGate(config.scenario.max_steps, max_gap=2 * self.interval)   # one decision step may go missing
         self.feature_set = config.graph.feature_set
         self.diagnostics = Diagnostics(self, 'graph_builder')
+        self.intake = Intake(self, self.diagnostics, limits_of(config))
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
         if decision is None:
             self.subscribe()
@@ -67,8 +69,8 @@ class GraphBuilderNode(Node):
     def subscribe(self) -> None:
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (executor.Waiter) empties the queue of the subscription created first first
-        self.events = self.diagnostics.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        self.diagnostics.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+        self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
 
     def on_episode(self, msg: EpisodeEvent) -> None:
         if msg.event == EpisodeEvent.EVENT_STARTED:
@@ -86,7 +88,7 @@ class GraphBuilderNode(Node):
         try:
             graph = builder.build(states.vehicles, snapshot)
         except (GraphInputError, GraphCapacityError) as error:
-            self.diagnostics.reject('states', f'states of step {step}', str(error))
+            self.diagnostics.reject('states', f'states of step {step}', str(error), STATES_TOPIC)
             return
         self.builder = builder
         self.diagnostics.count('skipped_decision_steps', self.gate.accept(episode, step) // self.interval)

@@ -22,9 +22,16 @@ and lz4 bags (test/test_bag_compression.py).
 Gaps in the recorded step sequences of states (every step), graphs and commands (every
 decision step) are counted per topic on /diagnostics (``gaps_<topic>``, ``missing_steps_<topic>``)
 and in the summary at close: a node that died and came back leaves such a hole.
+
+Every subscription goes through the intake (``ros/intake.py``): a message over its topic's size
+limit (``messages/sizes.py``) is refused unrecorded and counted (``dropped_<topic>_too_large``
+on /diagnostics, in the summary at close, and in the bag's metadata.yaml, ``custom_data``
+``exit_decision.refused_too_large``), so a bag keeps the stack's traffic, not an attacker's.
+A bag repaired after a SIGKILL has no such entry (it is written at close).
 """
 from __future__ import annotations
 
+import json
 import time
 from datetime import datetime
 from pathlib import Path
@@ -37,12 +44,16 @@ from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_
                                             topic_qos, typestore)
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
+from exit_decision.ros.intake import Intake, limits_of, short
 from exit_decision.errors import ParameterError
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           describe)
 from exit_decision.ros.topics import COMMANDS_TOPIC, GRAPH_TOPIC, RECORDER_QOS, STATES_TOPIC
 from exit_decision.step_gaps import StepGaps
 
+#: metadata.yaml custom_data key: the messages refused as over their topic's size limit, per
+#: ``dropped_<topic>_too_large`` counter (JSON)
+REFUSED_KEY = 'exit_decision.refused_too_large'
 FLUSH_PERIOD = 1.0   # [s] wall clock: longest a received message stays in memory only
 DEFAULT_COMPRESSION = 'zstd'
 
@@ -85,6 +96,9 @@ class Recorder(Node):
         self.gaps = {topic: StepGaps(stride) for topic, stride in
                      ((STATES_TOPIC, 1), (GRAPH_TOPIC, interval), (COMMANDS_TOPIC, interval)) if topic in topics}
         self.diagnostics = Diagnostics(self, 'recorder')
+        self.intake = Intake(self, self.diagnostics, limits_of(config))
+        self.diagnostics.figures.append(lambda: {f'recorded_{short(topic)}': count
+                                                 for topic, count in self.counts.items()})
         self.waiting = [topic for topic in topics if not self.subscribe(topic, KNOWN_TOPICS.get(topic))]
         if self.waiting:
             self.discovery = self.create_timer(0.5, self.discover)
@@ -96,8 +110,10 @@ class Recorder(Node):
         if type_name is None:
             return False
         self.connections[topic] = self.writer.add_connection(topic, type_name, typestore=self.store)
-        self.create_subscription(message_class(type_name), topic, lambda raw, t=topic: self.write(t, raw),
-                                 topic_qos(topic, RECORDER_QOS), raw=True)
+        # over the topic's size limit: refused unrecorded and counted (the intake), so a bag
+        # keeps the stack's traffic, not a flood of oversized messages
+        self.intake.subscribe(message_class(type_name), topic, lambda raw, t=topic: self.write(t, raw),
+                              topic_qos(topic, RECORDER_QOS), raw=True)
         return True
 
     def discover(self) -> None:
@@ -128,9 +144,17 @@ class Recorder(Node):
         counts = ', '.join(f'{topic}: {count}' for topic, count in self.counts.items())
         holes = ', '.join(f'{topic}: {g.missing} step(s) in {g.gaps} gap(s)' for topic, g in self.gaps.items()
                           if g.gaps) or 'none'
-        return f'{self.path} ({counts}); gaps in the step sequences: {holes}'
+        refused = ', '.join(f'{key}: {count}' for key, count in self.refused().items()) or 'none'
+        return f'{self.path} ({counts}); gaps in the step sequences: {holes}; refused as too large: {refused}'
+
+    def refused(self) -> dict[str, int]:
+        """Messages refused unrecorded, per ``dropped_<topic>_too_large`` counter."""
+        return {key: int(value) for key, value in sorted(self.diagnostics.counters.items())
+                if key.startswith('dropped_') and key.endswith('_too_large')}
 
     def destroy_node(self) -> None:
+        # the bag says what it refused: metadata.yaml's custom_data (rosbag2's own field)
+        self.writer.set_custom_data(REFUSED_KEY, json.dumps(self.refused()))
         self.writer.close()
         self.get_logger().info(f'bag closed: {self.summary()}')
         super().destroy_node()

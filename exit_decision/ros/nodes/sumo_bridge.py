@@ -38,6 +38,7 @@ from exit_decision.config.seeds import TEST_SEED
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import Waiter, run_node, take_waiting
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           declare_thread_priority, describe, follow)
 from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
@@ -98,8 +99,10 @@ class SumoBridge(Node):
         self.states_pub = self.create_publisher(VehicleStateArray, STATES_TOPIC, STATES_QOS)
         self.events_pub = self.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
         self.diagnostics = Diagnostics(self, 'sumo_bridge')
-        self.commands = self.diagnostics.subscribe(CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS,
-                                                   raw=True)
+        # its one subscription: its wait for commands takes this queue only, and nothing else the
+        # process could be sent (other topics) reaches it
+        self.commands = Intake(self, self.diagnostics, limits_of(self.config)).subscribe(
+            CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS, raw=True)
         self.episode = 0
         self.published_step = -1            # step of the newest published states
         self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
@@ -120,13 +123,13 @@ class SumoBridge(Node):
         """Accept (checked, clamped) the commands that can answer now; reject the rest whole: a
         message with a bad field whatever its step, then one that cannot answer now. Decoded
         from the CDR bytes (``commands_cdr``): the bridge waits on it."""
-        what = 'commands'
+        what, cause = 'commands', 'undecodable'
         try:
             msg = decode_commands(raw)
-            what = f'commands of step {msg.step}'
+            what, cause = f'commands of step {msg.step}', 'invalid'
             commands, clamped = self.limits.sanitize(msg.commands)
         except InputError as error:
-            self.diagnostics.reject('command_messages', what, str(error))
+            self.diagnostics.reject('command_messages', what, str(error), COMMANDS_TOPIC, cause)
             return
         if msg.episode != self.episode:
             reason = f'episode {msg.episode} is not the current episode {self.episode}'
@@ -138,7 +141,7 @@ class SumoBridge(Node):
             reason = None if self.last_command_step < msg.step <= self.published_step else (
                 f'step {msg.step} is not in {self.last_command_step + 1}..{self.published_step}')
         if reason:
-            self.diagnostics.reject('stale_commands', 'commands', reason)
+            self.diagnostics.reject('stale_commands', 'commands', reason, COMMANDS_TOPIC, 'out_of_sequence')
             return
         if clamped:
             self.diagnostics.count('clamped_commands', clamped)

@@ -35,9 +35,11 @@ from visualization_msgs.msg import Marker, MarkerArray
 from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
+from exit_decision.ros.intake import Intake, limits_of
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
-                                      MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_TOPIC, STREAM_QOS)
+                                      MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC,
+                                      STREAM_QOS)
 from exit_decision.ros.messages.conversions import (MessageError, commands_from_msg, graph_from_msg, options_from_msg,
                                                     overrides_from_msg)
 from exit_decision.scenario.geometry import RoadGeometry
@@ -96,11 +98,15 @@ class Visualizer(Node):
         self.trailing = None                                # the one-shot timer that sends it
         self.markers: dict = {}   # Marker messages reused frame to frame (marker_array)
         self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
+        self.diagnostics = Diagnostics(self, 'visualizer')
+        intake = Intake(self, self.diagnostics, limits_of(config))
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (executor.Waiter) empties the queue of the subscription created first first
-        self.events = self.create_subscription(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-        # an onlooker: depth 100 (not the nodes' 1000); a frame lost while it is behind only skips a picture
-        self.create_subscription(VehicleStateArray, STATES_TOPIC, self.on_states, STREAM_QOS, raw=True)
+        self.events = intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
+        # the nodes' depth, 1000 (at most 1000 x the states' size limit, 18 MB for N = 60): behind for a
+        # while under a flood from several publishers, it would lose messages no counter can see
+        # (rclpy says no message's publisher), its own stream's among them
+        intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
         frames = self.frames
 
         def draw_graph(msg: TrafficGraph) -> None:
@@ -114,9 +120,8 @@ class Visualizer(Node):
                 (ShieldOverrideArray, OVERRIDES_TOPIC, 'shield_overrides', 'shield overrides',
                  lambda msg: frames.shield(overrides_from_msg(msg), msg.step)),
                 (CavOptionArray, OPTIONS_TOPIC, 'options', 'options', lambda msg: frames.options(options_from_msg(msg)))):
-            self.create_subscription(kind, topic, self.of_this_episode(counter, what, use), STREAM_QOS)
-        self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
-        self.diagnostics = Diagnostics(self, 'visualizer')
+            intake.subscribe(kind, topic, self.of_this_episode(topic, counter, what, use), STREAM_QOS)
+        intake.subscribe(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
 
     def on_states(self, raw: bytes) -> None:
         states = self.diagnostics.take_states(raw, self.gate, self.events, self.limits)
@@ -169,16 +174,20 @@ class Visualizer(Node):
         frame, stamp = self.last
         self.send(dataclasses.replace(frame, crashed=(), collisions=self.frames.end(msg.p_collision)), stamp)
 
-    def of_this_episode(self, counter: str, what: str, use: Callable[[object], None]) -> Callable[[object], None]:
-        """A subscription's callback: ``use(msg)`` for a message of the episode drawn; one that does
-        not fit the scenario is counted under ``counter`` and changes nothing."""
+    def of_this_episode(self, topic: str, counter: str, what: str,
+                        use: Callable[[object], None]) -> Callable[[object], None]:
+        """A subscription's callback: ``use(msg)`` for a message of the episode drawn; one of
+        another episode is dropped (``out_of_sequence``), one that does not fit the scenario is
+        counted under ``counter`` (``invalid``); neither changes anything."""
         def callback(msg) -> None:
             if msg.episode != self.frames.episode:
+                self.diagnostics.drop(topic, 'out_of_sequence', f'{what} of episode {msg.episode}',
+                                      f'not the episode drawn, {self.frames.episode}')
                 return
             try:
                 use(msg)
             except MessageError as error:
-                self.diagnostics.reject(counter, f'{what} of step {msg.step}', str(error))
+                self.diagnostics.reject(counter, f'{what} of step {msg.step}', str(error), topic)
         return callback
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:

@@ -1,0 +1,123 @@
+"""Bounded intake (issue 40): size limits from N and the layout, drops counted by cause, the
+recorder refusing what is over the limit, and the stack under a flood (``bench flood``'s run,
+short, on the states topic): commands keep coming, memory stays bounded, every drop is counted.
+No timing is asserted here: the rate and wait targets are the bench's (``exit-decision bench flood``)."""
+import json
+
+import yaml
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
+from rclpy.serialization import serialize_message
+
+from exit_decision.config import default_config_dir, load_project
+from exit_decision.graph import FEATURE_SETS
+from exit_decision.ros.bags.storage import read_messages
+from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.intake import Intake
+from exit_decision.ros.messages.commands_cdr import encode_commands
+from exit_decision.ros.messages.sizes import NAME_BYTES, limits_of
+from exit_decision.ros.messages.states_cdr import encode_states
+from exit_decision.ros.nodes.recorder import REFUSED_KEY
+from exit_decision.ros.probe import ProbeNode
+from exit_decision.ros.stack.flood import MEMORY_MB, bench_flood
+from exit_decision.ros.stack.flooder import padded
+from exit_decision.ros.stack.launcher import start_node
+from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS
+from exit_decision.traffic import CavCommand, VehicleState
+
+from ros_helpers import stop
+
+
+def test_the_size_limits_hold_the_largest_messages_the_stack_sends():
+    """N vehicles with long names, a full N x N graph, N commands with a long policy path: each
+    within its topic's limit; one byte more than a limit is over it."""
+    config = load_project(default_config_dir())
+    limits, n = limits_of(config), config.graph.max_vehicles
+    name = 'x' * NAME_BYTES
+    vehicles = [VehicleState(f'{name[:-3]}{i:03d}', 'HV1', 2, name, 1e4, -1.0, 40.0, -9.0, 5.0, 25.0, -1, name,
+                             False, True) for i in range(n)]
+    states = encode_states(vehicles, episode=2**32 - 1, step=2**32 - 1, step_length=0.1, frame_id=name)
+    features = len(FEATURE_SETS[config.graph.feature_set])
+    graph = serialize_message(TrafficGraph(
+        num_nodes=n, num_features=features, feature_set=name, vehicle_ids=[name] * n, features=[1.0] * (n * features),
+        adjacency=bytes([1]) * (n * n), cav_mask=bytes([1]) * n))
+    commands = encode_commands({f'{name[:-3]}{i:03d}': CavCommand(1, -8.0) for i in range(n)}, episode=1, step=5,
+                               stamp=Time(), mode=name, algorithm=name, policy='/p' * 2000)
+    for topic, message in ((STATES_TOPIC, states), (GRAPH_TOPIC, graph), (COMMANDS_TOPIC, commands)):
+        assert len(message) <= limits[topic], (topic, len(message), limits[topic])
+        assert len(padded(message, limits[topic] + 1)) > limits[topic]
+
+
+def test_the_intake_refuses_what_is_too_large_or_undecodable_and_counts_it_by_topic_and_cause():
+    config = load_project(default_config_dir())
+    limit = limits_of(config)[EPISODE_TOPIC]
+    probe = ProbeNode('intake_test')
+    try:
+        diagnostics = Diagnostics(probe.node, 'intake_test')
+        taken = []
+        Intake(probe.node, diagnostics, limits_of(config)).subscribe(EpisodeEvent, EPISODE_TOPIC, taken.append,
+                                                                     EVENT_QOS)
+        publisher = probe.node.create_publisher(EpisodeEvent, EPISODE_TOPIC, EVENT_QOS)
+        assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 10)
+        good = serialize_message(EpisodeEvent(episode=3))
+        for message in (good, padded(good, limit + 1), b'\x00\x01\x00\x00\xff', good):
+            publisher.publish(message)
+        assert probe.spin_until(lambda: diagnostics.counters.get('received_episode_events') == 4, 10), \
+            diagnostics.counters
+        assert [msg.episode for msg in taken] == [3, 3]
+        assert diagnostics.counters['dropped_episode_events_too_large'] == 1
+        assert diagnostics.counters['dropped_episode_events_undecodable'] == 1
+    finally:
+        probe.close()
+
+
+def test_the_recorder_refuses_a_message_over_the_limit_counts_it_and_the_bag_says_so(tmp_path):
+    bag = tmp_path / 'bag'
+    recorder = start_node('recorder', {'bag_path': str(bag)}, tmp_path / 'recorder.log')
+    probe = ProbeNode('recorder_flood_test')
+    limit = limits_of(load_project(default_config_dir()))[STATES_TOPIC]
+    try:
+        counters = {}
+
+        def on_diagnostics(msg: DiagnosticArray) -> None:
+            counters.update({kv.key: float(kv.value) for status in msg.status if status.name == 'recorder'
+                             for kv in status.values})
+        probe.node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, STREAM_QOS)
+        publisher = probe.node.create_publisher(VehicleStateArray, STATES_TOPIC, STREAM_QOS)
+        assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 30)
+        probe.spin_until(lambda: False, 0.5)
+        good = encode_states([], episode=1, step=1, step_length=0.1)
+        for message in (good, padded(good, limit + 1), padded(good, 6_000_000), good):
+            publisher.publish(message)
+        assert probe.spin_until(lambda: counters.get('received_vehicle_states') == 4, 30), counters
+        assert counters['dropped_vehicle_states_too_large'] == 2 and counters['recorded_vehicle_states'] == 2
+        assert stop(recorder, sig=15) == 0
+    finally:
+        probe.close()
+        stop(recorder, sig=9)
+    assert [len(raw) for topic, _, raw in read_raw(bag) if topic == STATES_TOPIC] == [len(good)] * 2
+    custom = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']['custom_data']
+    assert json.loads(custom[REFUSED_KEY]) == {'dropped_vehicle_states_too_large': 2}
+
+
+def read_raw(bag):
+    from rosbags.rosbag2 import Reader
+    with Reader(bag) as reader:
+        for connection, stamp, raw in reader.messages():
+            yield connection.topic, stamp, raw
+
+
+def test_under_a_flood_commands_keep_coming_memory_stays_bounded_and_every_drop_is_counted():
+    """The default stack, synchronous, while two processes flood the states topic for a few
+    seconds with messages over its limit (a few of them huge: 60,000 vehicles), at the stack's
+    own state rate: no node dies (the run would stop), decisions go on during the flood, every
+    node's peak memory stays under MEMORY_MB, and every subscriber counts every message as too
+    large. (The bench's targets, 10x the rate and the wait's p99, are figures, not asserted.)"""
+    run = bench_flood(phase_seconds=3.0, pairs=1, topics=[STATES_TOPIC], kinds=('oversized',), rate_factor=1.0,
+                      huge_bytes_per_s=10e6)
+    (phase,) = run.phases
+    assert phase.sent > 0
+    assert len(run.waits([phase.window])) > 0, 'decision steps answered during the flood'
+    assert run.peak_mb and all(mb < MEMORY_MB for mb in run.peak_mb.values()), run.peak_mb
+    assert run.uncounted(phase) == {node: 0.0 for node in run.subscribers[STATES_TOPIC]}, phase.counted
