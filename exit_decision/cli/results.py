@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 from exit_decision.cli.arguments import existing, policy_directory, renamed
@@ -31,8 +32,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir)
     runs = args.policy or [Path('policies') / DEFAULT_ALGORITHM]
     shipped = next((run for run in runs if run.name == DEFAULT_ALGORITHM), Path('policies') / DEFAULT_ALGORITHM)
-    for path in make_all([shipped], None, args.figures):
+    drawn = make_all([shipped], None, args.figures)
+    for path in drawn:
         print(path)
+    if not drawn:   # e.g. an anchored policy, made by `exit-decision anchor` without a training log of its own
+        print(f'{shipped}: no training log (training.csv, validation.csv); the shipped policy\'s figures in '
+              f'{args.figures} are not drawn again', file=sys.stderr)
     print(results_page(args.evaluation, runs, args.sanity, args.tradeoff, args.figures, args.out,
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings,
                        options_dir=args.options_table))
