@@ -5,7 +5,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 MANIFEST = REPO / 'docs' / 'figures.md'
-NOT_YET_MADE = '(made with the shipped options policy)'
+NOT_YET_MADE = '(made with the shipped policy)'
 ROW = re.compile(r'^\| `(docs/[^`]+\.(?:png|gif))` \|(.*)$', re.MULTILINE)
 
 

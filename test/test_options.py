@@ -187,27 +187,66 @@ def test_the_best_fixed_driver_is_the_best_constant_option_per_mode():
     assert '+1.000 [+1.000, +1.000] ↑' in text
 
 
-def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo_drivers_per_mode():
-    from exit_decision.experiments.constant_options import readme_table
-
+def _readme_rows(collisions: float = 0.0):
+    """Three seeds of the fixed drivers and a policy 'shipped' (its CAV collisions under CONI given)."""
     def row(run, seed, aggi, coni, speed=15.0):
         return {'run': run, 'seed': seed, 'variant': 'v', 'return_AGGI': aggi, 'return_CONI': coni, 'v_AVs': speed,
-                **dict.fromkeys(('headway_CAV', 'N_braking_CAV', 'N_braking', 'p_CAV', 'p_collision_CAV'), 1.0)}
+                'N_braking': 5.0 + seed + (2.0 if '@' in run else 0.0), 'p_collision_CAV': 0.0,
+                **dict.fromkeys(('headway_CAV', 'N_braking_CAV', 'p_CAV'), 1.0)}
     rows = [row(run, seed, aggi + seed * seed, coni + seed, speed) for seed in (1, 2, 3)
             for run, aggi, coni, speed in [('option_neutral', 10, 10, 15), ('option_close', 11, 9, 16),
                                            ('option_calm', 8, 12, 14), ('sumo', 9, 9, 15),
-                                           ('shipped@AGGI', 12, 0, 17), ('shipped@CONI', 0, 13, 13)]]
-    lines = readme_table(rows, ['AGGI', 'CONI'], 'v', 'shipped', 'option_neutral').splitlines()
+                                           ('shipped@AGGI', 12, 0, 17), ('shipped@CONI', 0, 11, 13)]]
+    for r in rows:
+        r['p_collision_CAV'] = collisions if r['run'] == 'shipped@CONI' else 0.0
+    return rows
+
+
+def test_the_readme_table_puts_the_policy_beside_the_best_fixed_neutral_and_sumo_drivers_per_mode():
+    from exit_decision.experiments.constant_options import readme_table
+
+    rows = _readme_rows()
+    lines = readme_table(rows, ['AGGI', 'CONI'], 'v', 'shipped', 'option_neutral', links={'v': 'docs/r.md#v'}).splitlines()
+    assert "hard brakings per episode, the CAVs' own | hard brakings per episode, all vehicles |" in lines[0]
+    assert lines[0].endswith('| return − the neutral driver [95%] | return − the best fixed driver [95%] |')
     aggi = [line for line in lines if line.startswith('| AGGI |')]
     assert [line.split(' | ')[1] for line in aggi] == [
         'the shipped policy', 'the best fixed driver (`close`)', 'the neutral driver', "SUMO's drivers"]
-    assert '| 17.00 |' in aggi[0] and aggi[0].endswith('+2.000 [+2.000, +2.000] ↑ |')
-    assert aggi[2].endswith('— |')
+    assert '| 17.00 |' in aggi[0] and aggi[0].endswith('+2.000 [+2.000, +2.000] ↑ | +1.000 [+1.000, +1.000] ↑ |')
+    assert aggi[1].endswith('↑ | — |') and aggi[2].endswith('— | -1.000 [-1.000, -1.000] ↓ |')
     coni = [line for line in lines if line.startswith('| CONI |')]
-    assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ |')
-    assert lines[-1].endswith("The shipped policy's return: against the best fixed driver, above under AGGI, CONI; "
-                              "against SUMO's drivers, above under AGGI, CONI.")
-    assert len(readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped', 'option_neutral').splitlines()) == 2 + 3 + 2
+    assert 'the best fixed driver (`calm`)' in coni[1] and coni[3].endswith('-1.000 [-1.000, -1.000] ↓ | -3.000 [-3.000, -3.000] ↓ |')
+    assert '- [`v`](docs/r.md#v) (this table): config/reward.yaml' in lines
+    no_policy = readme_table([r for r in rows if '@' not in r['run']], ['AGGI'], 'v', 'shipped', 'option_neutral')
+    assert [line.split(' | ')[1] for line in no_policy.splitlines() if line.startswith('| AGGI')] == [
+        'the best fixed driver (`close`)', 'the neutral driver', "SUMO's drivers"]
+
+
+def test_the_readme_verdict_says_safely_only_while_the_policy_collides_no_more_than_the_best_fixed_driver():
+    from exit_decision.experiments.constant_options import readme_verdict
+
+    safe = readme_verdict(_readme_rows(), ['AGGI', 'CONI'], 'v', 'shipped', 'option_neutral')
+    assert 'safely' in safe and 'Not safer' not in safe
+    assert 'Against the best fixed driver: above under AGGI; below under CONI.' in safe
+    assert "Against SUMO's drivers: above under AGGI, CONI." in safe
+    assert 'more under AGGI, CONI (AGGI +2.00 [+2.00, +2.00] ↑; CONI +2.00 [+2.00, +2.00] ↑)' in safe
+    unsafe = readme_verdict(_readme_rows(collisions=0.01), ['AGGI', 'CONI'], 'v', 'shipped', 'option_neutral')
+    assert 'safe' not in unsafe.replace('Not safer', '')
+    assert 'more CAV collisions than the best fixed driver under CONI' in unsafe
+    assert 'AGGI 0.0000 against 0.0000, CONI 0.0100 against 0.0000' in unsafe
+    assert 'No policy' in readme_verdict([r for r in _readme_rows() if '@' not in r['run']], ['AGGI'], 'v', 'shipped',
+                                         'option_neutral')
+
+
+def test_the_readme_links_each_reward_variant_to_its_table_in_the_options_section(tmp_path):
+    from exit_decision.evaluation.report import OPTIONS_HEADING, variant_links
+
+    page = tmp_path / 'results.md'
+    page.write_text('# Results\n\n```\n# a comment\n```\n\n## The reward\n\n### Reward variant `headway` (100 seeds)\n\n'
+                    f'{OPTIONS_HEADING}\n\n### Reward variant `headway` (100 seeds)\n\n'
+                    '### Reward variant `calibrated` (100 seeds)\n\n## Ablation\n\n### Reward variant `calibrated` (100 seeds)\n')
+    assert variant_links(page, 'docs/results.md') == {'headway': 'docs/results.md#reward-variant-headway-100-seeds-1',
+                                                      'calibrated': 'docs/results.md#reward-variant-calibrated-100-seeds'}
 
 
 def test_the_env_over_options_reads_only_the_choosing_rows(project_config):
@@ -331,4 +370,5 @@ def test_the_readme_table_gives_one_row_when_the_neutral_driver_is_the_best_fixe
     lines = [line for line in readme_table(rows, ['AGGI'], 'v', 'p', 'option_neutral').splitlines() if line.startswith('| AGGI')]
     assert [line.split(' | ')[1] for line in lines] == [
         'the shipped policy', 'the best fixed driver (`neutral`, the neutral driver)', "SUMO's drivers"]
-    assert lines[0].endswith('-1.000 [-1.000, -1.000] ↓ |') and lines[1].endswith('— |')
+    assert lines[0].endswith('-1.000 [-1.000, -1.000] ↓ | -1.000 [-1.000, -1.000] ↓ |')
+    assert lines[1].endswith('— | — |')

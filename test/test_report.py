@@ -48,3 +48,31 @@ def test_the_speed_section_links_the_benchmarks_logs_instead_of_copying_them(tmp
     text = '\n'.join(benchmark_lines(logs, relative))
     assert '[`results/benchmarks.txt`](results/benchmarks.txt)' in text and '(performance.md)' in text
     assert '8209' not in text and '```' not in text
+
+
+def test_the_readmes_verdict_and_table_are_what_report_writes_from_the_options_table():
+    """The README's verdict (at its top) and results table are generated from the shipped options
+    table of the test seeds, for the default algorithm; outside them the README says nothing is safe."""
+    import re
+    from pathlib import Path
+
+    from exit_decision.config import load_project
+    from exit_decision.evaluation.report import README_BLOCKS, variant_links
+    from exit_decision.experiments.constant_options import neutral_run, readme_table, readme_verdict
+    from exit_decision.model.names import DEFAULT_ALGORITHM
+    from exit_decision.tables import read_rows
+
+    repo = Path(__file__).resolve().parent.parent
+    readme = (repo / 'README.md').read_text(encoding='utf-8')
+    config = load_project()
+    rows = read_rows(repo / 'docs/results/options/test_seeds/constant_options.csv')
+    table = (rows, config.mode_matrix.modes, config.env.reward_variant, DEFAULT_ALGORITHM, neutral_run(config))
+
+    def block(name: str) -> str:
+        begin, end = README_BLOCKS[name]
+        return readme.split(begin + '\n', 1)[1].split('\n' + end, 1)[0]
+    assert block('verdict') == readme_verdict(*table)
+    assert block('table').startswith(readme_table(*table, links=variant_links(repo / 'docs/results.md', 'docs/results.md')))
+    assert readme.index(README_BLOCKS['verdict'][0]) < readme.index('\n## '), 'the verdict comes before the first section'
+    outside = readme.replace(block('verdict'), '')
+    assert not re.search(r'\bsafe(?:ly|r)?\b(?!-)', outside.split('## Glossary')[0], re.IGNORECASE)

@@ -3,6 +3,8 @@ results page)."""
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 
 from exit_decision.cli.arguments import existing, policy_directory, renamed
@@ -20,21 +22,31 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    """Write the results page from evaluation, ablation and figures, and the README's results
-    table from the options table of the test seeds."""
-    from exit_decision.evaluation.report import results_page, write_readme_table
-    from exit_decision.experiments.constant_options import neutral_run, readme_table
+    """Draw the shipped policy's training figures, write the results page from evaluation, ablation
+    and figures, and the README's verdict and results table from the options table of the test seeds."""
+    from exit_decision.evaluation.plots import make_all
+    from exit_decision.evaluation.report import results_page, variant_links, write_readme_block, write_readme_table
+    from exit_decision.experiments.constant_options import neutral_run, readme_table, readme_verdict
     from exit_decision.tables import read_rows
 
     config = load_project(args.config_dir)
     runs = args.policy or [Path('policies') / DEFAULT_ALGORITHM]
+    shipped = next((run for run in runs if run.name == DEFAULT_ALGORITHM), Path('policies') / DEFAULT_ALGORITHM)
+    drawn = make_all([shipped], None, args.figures)
+    for path in drawn:
+        print(path)
+    if not drawn:   # e.g. an anchored policy, made by `exit-decision anchor` without a training log of its own
+        print(f'{shipped}: no training log (training.csv, validation.csv); the shipped policy\'s figures in '
+              f'{args.figures} are not drawn again', file=sys.stderr)
     print(results_page(args.evaluation, runs, args.sanity, args.tradeoff, args.figures, args.out,
                        max_steps=config.scenario.max_steps, speed_pairs=config.mode_matrix.speed_orderings,
                        options_dir=args.options_table))
-    table = readme_table(read_rows(args.options_table / 'constant_options.csv'), config.mode_matrix.modes,
-                         config.env.reward_variant, DEFAULT_ALGORITHM, neutral_run(config))
+    rows = read_rows(args.options_table / 'constant_options.csv')
+    table = (rows, config.mode_matrix.modes, config.env.reward_variant, DEFAULT_ALGORITHM, neutral_run(config))
+    links = variant_links(args.out, Path(os.path.relpath(args.out.resolve(), args.readme.resolve().parent)).as_posix())
     made_by = (args.options_table / 'constant_options.md').read_text(encoding='utf-8').split('`')[1]
-    print(write_readme_table(args.readme, table, made_by))
+    write_readme_block(args.readme, 'verdict', readme_verdict(*table))
+    print(write_readme_table(args.readme, readme_table(*table, links=links), made_by))
     return 0
 
 
@@ -50,7 +62,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     plot.add_argument('--out', type=Path, default=Path('docs/figures'), help='where the figures go')
     plot.set_defaults(func=cmd_plot)
 
-    report = commands.add_parser('report', help='write docs/results.md from the generated results')
+    report = commands.add_parser('report', help='write docs/results.md, the shipped policy\'s training figures and the README\'s '
+                                   'verdict and results table from the generated results')
     report.add_argument('--evaluation', type=existing('dir'), default=Path('docs/results/evaluation'),
                         help='an evaluate --out directory (commands.txt and benchmarks.txt beside it)')
     report.add_argument('--config-dir', type=existing('dir'), default=None,

@@ -22,8 +22,9 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from exit_decision.evaluation.report import TEACHER  # noqa: E402
+from exit_decision.evaluation.report import REFERENCE_DRIVERS, TEACHER  # noqa: E402
 from exit_decision.evaluation.statistics import paired_differences, paired_interval  # noqa: E402
+from exit_decision.model.names import described  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
 SMOOTHING = 10   # episodes in the rolling mean of training curves
@@ -60,8 +61,10 @@ def run_info(run_dir: Path) -> dict:
 
 
 def training_reward(run_dirs: list[Path], out: Path) -> Path | None:
-    runs = [(run_info(d), read_csv(d / 'training.csv')) for d in run_dirs if (d / 'training.csv').exists()]
-    runs = [(info, data) for info, data in runs if info['reward_variant'] != 'baseline']
+    """Per mode, each run's episode reward while it trained (the runs named in the title)."""
+    named = [(d.name, run_info(d), read_csv(d / 'training.csv')) for d in run_dirs if (d / 'training.csv').exists()]
+    named = [(name, info, data) for name, info, data in named if info['reward_variant'] != 'baseline']
+    runs = [(info, data) for _, info, data in named]
     if not runs:
         return None
     modes = sorted({info['mode'] for info, _ in runs})
@@ -75,6 +78,7 @@ def training_reward(run_dirs: list[Path], out: Path) -> Path | None:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(f'episode reward ({SMOOTHING}-episode mean)')
     axes[0][0].legend()
+    fig.suptitle(', '.join(described(name) for name, _, _ in named) + ': training (exploring)', fontsize=10)
     return save(fig, out / 'training_reward.png')
 
 
@@ -130,7 +134,7 @@ def validation_curves(run_dir: Path, out: Path, exit_target: float = 0.99) -> Pa
         ax.set_xlabel('training episode (0 = after pre-training)')
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f'{run_dir.name}: validation against the teacher')
+    fig.suptitle(f'{described(run_dir.name)}: validation against the teacher')
     return save(fig, out / f'validation_{run_dir.name}.png')
 
 
@@ -160,6 +164,12 @@ def mode_panels(modes: list[str], drivers: list[str], width: float = 3.2):
         ax.set_title(mode or 'every run', fontsize=10)
         ax.grid(alpha=0.3, axis='x')
     return fig, axes[0]
+
+
+def learned(drivers: list[str]) -> str:
+    """The learned policies among an evaluation's drivers (the rest are reference drivers), for a title."""
+    names = [d for d in drivers if d not in REFERENCE_DRIVERS and not d.startswith(TEACHER + '_')]
+    return ', '.join(map(described, names)) or 'the reference drivers'
 
 
 def _rows(columns: dict) -> list[dict]:
@@ -198,7 +208,7 @@ def test_reward(evaluation_dir: Path, out: Path, reference: str = REFERENCE) -> 
             ax.plot(mean, row, 'o', color='tab:blue')
         ax.set_xlabel(f'return − {reference} (paired)' if has_reference else 'test episode return')
         ax.margins(x=0.15)
-    fig.suptitle('test episodes: mean with 95% interval over the seeds'
+    fig.suptitle(f'{learned(drivers)}: test episodes, mean with 95% interval over the seeds'
                  + (f'; 0 = the {reference} driver on the same seeds' if has_reference else ''), fontsize=10)
     return save(fig, out / 'test_reward.png')
 
@@ -221,7 +231,7 @@ def speeds(evaluation_dir: Path, out: Path) -> Path | None:
                         xerr=[v.std() for _, v in rows], fmt='o', capsize=3, color=colour, label=name)
         ax.set_xlabel('mean speed [m/s], ± sd over episodes')
     axes[0].figure.legend(*axes[0].get_legend_handles_labels(), loc='upper center', ncol=2, fontsize=9,
-                          frameon=False, bbox_to_anchor=(0.5, 1.0))
+                          frameon=False, bbox_to_anchor=(0.5, 1.0), title=f'{learned(drivers)}: test episodes')
     fig.tight_layout(rect=(0, 0, 1, 0.92))
     return save(fig, out / 'speeds.png', layout=False)
 
@@ -244,7 +254,8 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
         step = max(1, len(accelerations) // 10)
         ax.set_xticks(range(0, len(accelerations), step), [f'{a:g}' for a in accelerations[::step]])
         ax.set_xlabel('acceleration [m/s²] (chosen values only)')
-        ax.set_title(f'{source.stem.removesuffix("_actions")}: share of actions chosen')
+        run, _, mode = source.stem.removesuffix('_actions').rpartition('_')
+        ax.set_title(f'{described(run)} under {mode}: share of the grid\'s actions chosen')
         fig.colorbar(image, ax=ax)
         paths.append(save(fig, out / f'actions_{source.stem.removesuffix("_actions")}.png'))
     return paths

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import csv
 import json
+import re
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -16,7 +18,7 @@ from exit_decision.driving import fixed
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, play_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_difference, paired_interval
-from exit_decision.model.names import GRID_ALGORITHM, is_conditioned, method_of, run_name
+from exit_decision.model.names import DEFAULT_ALGORITHM, GRID_ALGORITHM, ROLES, is_conditioned, method_of, run_name
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
@@ -263,6 +265,48 @@ def benchmark_lines(benchmarks: Path, relative: Callable[[Path], str]) -> list[s
                f'({relative(performance)})' if performance.is_file() else '') + '.', '']
 
 
+def figure_lines(figures_dir: Path, relative: Callable[[Path], str]) -> list[str]:
+    """The results page's figures, folder by folder (``figures_dir`` and the folders in it), each
+    under the policies whose training run drew it (its ``validation_<run>.png``)."""
+    folders = [folder for folder in (figures_dir, *sorted(p for p in figures_dir.glob('*') if p.is_dir()))
+               if any(folder.glob('*.png'))]
+    lines = ['## Figures', '', 'Drawn by `exit-decision plot`; what each shows and the command that draws it: '
+             '[figures.md](figures.md).', ''] if folders else []
+    for folder in folders:
+        runs = [path.stem.removeprefix('validation_') for path in sorted(folder.glob('validation_*.png'))]
+        made = ', '.join(f'`{run}`' + (f' ({ROLES[run]})' if run in ROLES else '') for run in runs) or 'no training run'
+        lines += [f'### `{relative(folder)}/`: {made}', '',
+                  *[f'![{path.stem}]({relative(path)})' for path in sorted(folder.glob('*.png'))], '']
+    return lines
+
+
+#: the results page's section of the options table of the test seeds (the README's table)
+OPTIONS_HEADING = '## Over options: the learned policies against the fixed drivers (test seeds)'
+VARIANT_HEADING = re.compile(r'^### Reward variant `([^`]+)`')
+
+
+def anchor(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading's text (before a repeat's ``-1``, ``-2``)."""
+    return '-'.join(''.join(c for c in heading.lower() if c.isalnum() or c in ' -_').split(' '))
+
+
+def variant_links(page: Path, url: str) -> dict[str, str]:
+    """Per reward variant, the link (``url`` + anchor) to its table in the results page's section
+    ``OPTIONS_HEADING``; GitHub numbers a repeated heading's anchor."""
+    seen, links, section, fenced = Counter(), {}, '', False
+    for line in page.read_text(encoding='utf-8').splitlines():
+        fenced ^= line.startswith('```')
+        if fenced or not line.startswith('#'):
+            continue
+        slug = anchor(line.lstrip('#').strip())
+        repeat, seen[slug] = seen[slug], seen[slug] + 1
+        section = line if line.startswith('## ') else section
+        variant = VARIANT_HEADING.match(line)
+        if variant and section == OPTIONS_HEADING:
+            links.setdefault(variant[1], f'{url}#{slug}' + (f'-{repeat}' if repeat else ''))
+    return links
+
+
 def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Path, tradeoff_dir: Path,
                  figures_dir: Path, out: Path, max_steps: int, speed_pairs: Sequence[tuple[str, str]],
                  options_dir: Path | None = None) -> Path:
@@ -278,9 +322,10 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
              '## The reward prefers what its mode names (before any training)', '']
     tables = [('', sanity_dir / 'reward_sanity.md')]
     if options_dir is not None:   # and the safety row's ablation beside it, when made (docs/results/commands.txt)
-        tables += [('## Over options: the learned policies against the fixed drivers (test seeds)',
+        tables += [(OPTIONS_HEADING,
                     options_dir / 'constant_options.md'),
-                   ('## Ablation: the safety row (the shipped policy beside one trained with the previous row)',
+                   (f'## Ablation: the safety row (the shipped policy, `{DEFAULT_ALGORITHM}`, beside one trained with '
+                    'the previous row)',
                     options_dir.parent / 'ablation' / 'constant_options.md')]
     for heading, page in tables:
         if page.exists():
@@ -303,27 +348,31 @@ def results_page(evaluation_dir: Path, run_dirs: Sequence[Path], sanity_dir: Pat
         parts += ['## Trade-off from one checkpoint', '', f'![tradeoff]({relative(tradeoff)})', '',
                   f'Values: [`{relative(tradeoff_dir)}/tradeoff.csv`]({relative(tradeoff_dir)}/tradeoff.csv).', '']
     parts += benchmark_lines(evaluation_dir.parent / 'benchmarks.txt', relative)
-    figures = sorted(figures_dir.glob('*.png'))
-    if figures:
-        parts += ['## Figures', '', 'Made by `exit-decision plot`.', '']
-        parts += [f'![{path.stem}]({relative(path)})' for path in figures]
+    parts += figure_lines(figures_dir, relative)
     out.write_text('\n'.join(parts) + '\n', encoding='utf-8')
     return out
 
 
 #: the README lines between which ``report`` writes the results table
 README_MARKERS = ('<!-- results table: written by `exit-decision report` -->', '<!-- end of results table -->')
+#: the README's generated blocks (name -> its first and last line): ``report`` writes what stands between
+README_BLOCKS = {'verdict': ('<!-- verdict: written by `exit-decision report` -->', '<!-- end of verdict -->'),
+                 'table': README_MARKERS}
+
+
+def write_readme_block(readme: Path, block: str, text: str) -> Path:
+    """Replaces what stands between the markers of ``README_BLOCKS[block]`` with ``text``; refuses
+    a README without the markers."""
+    content = readme.read_text(encoding='utf-8')
+    begin, end = README_BLOCKS[block]
+    if content.count(begin) != 1 or content.count(end) != 1 or content.index(begin) > content.index(end):
+        raise UsageError(f'{readme}: needs the lines {begin!r} and then {end!r}, once each')
+    head, rest = content.split(begin)
+    _, tail = rest.split(end)
+    readme.write_text(f'{head}{begin}\n{text}\n{end}{tail}', encoding='utf-8')
+    return readme
 
 
 def write_readme_table(readme: Path, table: str, command: str) -> Path:
-    """Replaces what stands between the README's markers with ``table`` and the command that
-    made its rows; refuses a README without the markers."""
-    text = readme.read_text(encoding='utf-8')
-    begin, end = README_MARKERS
-    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
-        raise UsageError(f'{readme}: needs the lines {begin!r} and then {end!r}, once each')
-    head, rest = text.split(begin)
-    _, tail = rest.split(end)
-    readme.write_text(f'{head}{begin}\n{table}\nRows made by `{command}`.\n{end}{tail}', encoding='utf-8')
-    return readme
-
+    """The README's results table block: ``table`` and the command that made its rows."""
+    return write_readme_block(readme, 'table', f'{table}\nRows made by `{command}`.')

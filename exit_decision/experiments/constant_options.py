@@ -10,6 +10,7 @@ enough, and under every reward variant asked for. One simulation per worker proc
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -128,15 +129,20 @@ def _side(low: float, high: float) -> int:
     return 1 if low > 0 else -1 if high < 0 else 0
 
 
-def _paired_interval(by: dict, run: str, other: str, seeds: list[int], mode: str) -> tuple[float, float, float]:
-    """``run`` minus ``other`` under ``mode``, paired over the seeds: mean and 95% interval."""
-    return paired_interval(_returns(by, run, seeds, mode) - _returns(by, other, seeds, mode))
+def _interval(by: dict, run: str, other: str, seeds: list[int], key: str) -> tuple[float, float, float]:
+    """``run`` minus ``other`` in column ``key``, paired over the seeds: mean and 95% interval."""
+    return paired_interval([float(by[(run, s)][key]) - float(by[(other, s)][key]) for s in seeds])
+
+
+def _interval_text(by: dict, run: str, other: str, seeds: list[int], key: str, digits: int = 3) -> str:
+    """``_interval`` as text (↑ / ↓: the interval excludes 0)."""
+    mean, low, high = _interval(by, run, other, seeds, key)
+    return f'{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]' + {1: ' ↑', -1: ' ↓', 0: ''}[_side(low, high)]
 
 
 def _paired(by: dict, run: str, other: str, seeds: list[int], mode: str) -> str:
-    """``_paired_interval`` as text (↑ / ↓: the interval excludes 0)."""
-    mean, low, high = _paired_interval(by, run, other, seeds, mode)
-    return f'{mean:+.3f} [{low:+.3f}, {high:+.3f}]' + {1: ' ↑', -1: ' ↓', 0: ''}[_side(low, high)]
+    """``run``'s return under ``mode`` minus ``other``'s, paired over the seeds, as text."""
+    return _interval_text(by, run, other, seeds, f'return_{mode}')
 
 
 def _mean(by: dict, run: str, seeds: list[int], metric: str) -> float:
@@ -205,45 +211,90 @@ def _orderings(by: dict, seeds: list[int], label: str, orderings: list[tuple[str
 README_DRIVERS = {'policy': 'the shipped policy', 'best': 'the best fixed driver', 'neutral': 'the neutral driver',
                   'sumo': "SUMO's drivers"}
 README_COLUMNS = (('Exit-1', 'p_CAV', '.3f'), ('CAV collisions', 'p_collision_CAV', '.4f'), ('speed [m/s]', 'v_AVs', '.2f'),
-                  ('time headway [s]', 'headway_CAV', '.2f'), ('hard brakings', 'N_braking', '.2f'))
+                  ('time headway [s]', 'headway_CAV', '.2f'),
+                  ("hard brakings per episode, the CAVs' own", 'N_braking_CAV', '.2f'),
+                  ('hard brakings per episode, all vehicles', 'N_braking', '.2f'))
+#: the reward variants of the options tables, one line each (config/reward.yaml has them whole)
+VARIANTS = {'headway': "config/env.yaml's default: the reward matrix with every incentive per metre driven, the "
+                       'safe-gaps incentive graded by the time headway kept',
+            'calibrated': "the earlier results' reward: the same matrix with the safe-gaps incentive per step, "
+                          'not graded by headway'}
+_SIDES = {1: 'above', -1: 'below', 0: 'not resolved'}
 
 
-def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str, neutral: str) -> str:
+def _readme_runs(by: dict, seeds: list[int], mode: str, policy: str, best: str, neutral: str) -> dict[str, str]:
+    """The README's rows under ``mode`` (role -> run): the policy's (when the rows hold it), the best
+    fixed driver, the neutral driver (when it is not the best) and SUMO's drivers."""
+    runs = {'policy': f'{policy}{AT}{mode}', 'best': best, 'neutral': neutral, 'sumo': 'sumo'}
+    return {role: run for role, run in runs.items()
+            if (run, seeds[0]) in by and not (role == 'neutral' and best == neutral)}
+
+
+def readme_table(rows: list[dict], modes: list[str], variant: str, policy: str, neutral: str,
+                 links: Mapping[str, str] | None = None) -> str:
     """The README's results table: per mode, the policy labelled ``policy`` (when the rows hold
     it), the best fixed driver, the neutral driver and SUMO's drivers, with their means and the
-    return's paired difference to the neutral driver."""
+    return's paired differences to the neutral and the best fixed driver; then the rows' reward
+    variants, one line each, linked to their tables (``links``: variant -> URL)."""
     by, seeds = _by_run_and_seed(rows, variant, neutral)
     best = best_fixed_drivers(by, seeds, modes)
-    lines = ['| mode | driver | ' + ' | '.join(name for name, _, _ in README_COLUMNS) + ' | return − neutral driver [95%] |',
-             '|---' * (3 + len(README_COLUMNS)) + '|']
+    lines = ['| mode | driver | ' + ' | '.join(name for name, _, _ in README_COLUMNS)
+             + ' | return − the neutral driver [95%] | return − the best fixed driver [95%] |',
+             '|---' * (4 + len(README_COLUMNS)) + '|']
     for mode in modes:
-        runs = {'policy': f'{policy}{AT}{mode}', 'best': best[mode], 'neutral': neutral, 'sumo': 'sumo'}
-        for role, run in runs.items():
-            if (run, seeds[0]) not in by or (role == 'neutral' and best[mode] == neutral):
-                continue   # no policy in the rows; the neutral driver is the best fixed one (one row)
+        for role, run in _readme_runs(by, seeds, mode, policy, best[mode], neutral).items():
             label = README_DRIVERS[role] + (f' (`{run.removeprefix("option_")}`'
                                             + (', the neutral driver)' if run == neutral else ')') if role == 'best' else '')
             cells = [format(_mean(by, run, seeds, metric), spec) for _, metric, spec in README_COLUMNS]
-            difference = '—' if run == neutral else _paired(by, run, neutral, seeds, mode)
-            lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + f' | {difference} |')
-    return '\n'.join(lines + ['', f'{len(seeds)} test seeds, reward variant `{variant}`; ↑ / ↓: the interval excludes 0. '
-                               + _verdict(by, seeds, modes, best, policy)])
+            cells += ['—' if run == other else _paired(by, run, other, seeds, mode) for other in (neutral, best[mode])]
+            lines.append(f'| {mode} | {label} | ' + ' | '.join(cells) + ' |')
+    links = links or {}
+    defined = [(f'- [`{v}`]({links[v]})' if v in links else f'- `{v}`')
+               + f'{" (this table)" if v == variant else ""}: {VARIANTS.get(v, "config/reward.yaml")}'
+               for v in dict.fromkeys(r['variant'] for r in rows)]
+    return '\n'.join(lines + ['', f'{len(seeds)} test seeds, reward variant `{variant}`; ↑ / ↓: the interval '
+                                  f'excludes 0. The reward variants:', *defined, ''])
 
 
-def _verdict(by: dict, seeds: list[int], modes: list[str], best: dict[str, str], policy: str) -> str:
-    """One plain sentence: where the policy's return stands against the best fixed driver's and
-    SUMO's drivers', mode by mode."""
+def _by_side(sides: Mapping[str, int], words: Mapping[int, str] = _SIDES) -> str:
+    """{mode: side} as 'above under CONP; not resolved under AGGI, AGGP'."""
+    return '; '.join(f'{words[side]} under {", ".join(m for m, s in sides.items() if s == side)}'
+                     for side in (1, -1, 0) if side in sides.values())
+
+
+def readme_verdict(rows: list[dict], modes: list[str], variant: str, policy: str, neutral: str) -> str:
+    """The README's verdict on the policy labelled ``policy``, from the rows of its table: what its
+    return beats and where it is not resolved, its CAV collisions beside the best fixed driver's
+    ("safely" only while it has no more under any mode), and what it costs the traffic."""
+    by, seeds = _by_run_and_seed(rows, variant, neutral)
     if (f'{policy}{AT}{modes[0]}', seeds[0]) not in by:
-        return 'No policy in these rows: they are the drivers a learned policy must beat.'
-    words = {1: 'above', -1: 'below', 0: 'not resolved'}
-    parts = []
-    for other, name in (('best', 'the best fixed driver'), ('sumo', "SUMO's drivers")):
-        verdicts = {}
-        for mode in modes:
-            _, low, high = _paired_interval(by, f'{policy}{AT}{mode}', best[mode] if other == 'best' else 'sumo', seeds, mode)
-            verdicts.setdefault(words[_side(low, high)], []).append(mode)
-        parts.append(f'against {name}, ' + ' and '.join(f'{word} under {", ".join(ms)}' for word, ms in verdicts.items()))
-    return "The shipped policy's return: " + '; '.join(parts) + '.'
+        return 'No policy in the results table: it holds the drivers a learned policy must beat.'
+    best = best_fixed_drivers(by, seeds, modes)
+    run = {mode: f'{policy}{AT}{mode}' for mode in modes}
+
+    def sides(other: Callable[[str], str], key: Callable[[str], str]) -> dict[str, int]:
+        return {mode: _side(*_interval(by, run[mode], other(mode), seeds, key(mode))[1:]) for mode in modes}
+
+    returns = ' '.join(f'Against {name}: ' + _by_side(sides(other, lambda mode: f'return_{mode}')) + '.'
+                       for name, other in (('the best fixed driver', best.get), ('the neutral driver', lambda _: neutral),
+                                           ("SUMO's drivers", lambda _: 'sumo')))
+    collisions = {mode: (_mean(by, run[mode], seeds, 'p_collision_CAV'), _mean(by, best[mode], seeds, 'p_collision_CAV'))
+                  for mode in modes}
+    more = [mode for mode, (own, fixed_) in collisions.items() if own > fixed_]
+    safety = (f'**Not safer than a fixed driver yet:** more CAV collisions than the best fixed driver under '
+              f'{", ".join(more)}' if more else
+              '**It takes its CAVs to the exit safely on these seeds:** no more CAV collisions than the best fixed '
+              'driver under any mode')
+    cost = '; '.join(f'{mode} {_interval_text(by, run[mode], best[mode], seeds, "N_braking", 2)}' for mode in modes)
+    return '\n'.join([
+        f'**The shipped policy**, `{policy}` (what `scripts/main`, `exit-decision stack` and `ros2 launch` run), on '
+        f'{len(seeds)} test seeds, reward variant `{variant}` ([the table](#results)):',
+        f'- **Its return** (paired 95% intervals). {returns}',
+        f'- {safety} (the share of CAVs in a collision, the policy against the best fixed driver: '
+        + ', '.join(f'{mode} {own:.4f} against {fixed_:.4f}' for mode, (own, fixed_) in collisions.items()) + ').',
+        '- **What it costs the traffic:** hard brakings per episode of all vehicles, against the best fixed driver: '
+        + _by_side(sides(best.get, lambda _: 'N_braking'), {1: 'more', -1: 'fewer', 0: 'not resolved'})
+        + f' ({cost}).'])
 
 
 def write_table(config: ProjectConfig, seeds: list[int], variants: list[str], jobs: int, out_dir: Path,

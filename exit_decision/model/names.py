@@ -30,6 +30,16 @@ SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', GRID_ALGORITHM, DEFAULT_ALGORITHM, 'gqn' +
 Planned = tuple[str, str | None]
 
 
+#: what the pages call a policy beside its name (the other policies: by name alone)
+ROLES = {DEFAULT_ALGORITHM: 'the shipped policy', GRID_ALGORITHM: "the grid's MDGQN"}
+
+
+def described(name: str) -> str:
+    """A policy's name as a figure's title gives it: the grid's MDGQN says so (not the shipped
+    policy: a figure may outlive what ships)."""
+    return f'{name} ({ROLES[name]})' if name == GRID_ALGORITHM else name
+
+
 def is_conditioned(algorithm: str) -> bool:
     """One mode-conditioned policy for every mode (``<method>_conditioned``)."""
     return algorithm.endswith(CONDITIONED_SUFFIX)
