@@ -6,13 +6,21 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
 
 import pytest  # noqa: E402
 
-from exit_decision.config import load_project  # noqa: E402
+from exit_decision.config import default_config_dir, load_project  # noqa: E402
 from exit_decision.traffic import VehicleState  # noqa: E402
 
 
 @pytest.fixture(scope='session')
 def project_config():
     return load_project()
+
+
+@pytest.fixture(scope='session')
+def per_mode_policies(tmp_path_factory):
+    """A policy directory of the shipped config with untrained per-mode policies (gqn, mdgqn at
+    every mode) beside conditioned ones: none ships, and per-mode switching stays tested."""
+    from ros_helpers import random_policies
+    return random_policies(default_config_dir(), tmp_path_factory.mktemp('per_mode_policies'))
 
 
 def make_vehicle(vehicle_id: str, vehicle_class: str = 'HV1', *, lane: int = 0, position: float = 0.0,

@@ -48,7 +48,7 @@ BAD = [
     ['evaluate', '--driver', 'rule_based', '--mode', 'NOPE'], ['evaluate', '--policy', 'NOPE'],
     ['evaluate', '--show', '-1'],
     ['stack', '--start-mode', 'NOPE'], ['stack', '--mode', 'NOPE'], ['stack', '--switch-to', 'NOPE'], ['stack', '--switch-at', '-5'],
-    ['stack', '--switch-at', '1500'], ['stack', '--policy', 'NOPE'], ['stack', '--policy', 'MISSING'], ['stack', '--algorithm', 'NOPE'], ['stack', '--episodes', '-1'],
+    ['stack', '--switch-at', '1500'], ['stack', '--policy', 'NOPE'], ['stack', '--policy', 'MISSING'], ['stack', '--policy', 'gqn'], ['stack', '--algorithm', 'NOPE'], ['stack', '--episodes', '-1'],
     ['stack', '--seed', '-1'], ['stack', '--bag', 'EXISTING'], ['stack', '--policy-dir', 'MISSING'], ['stack', '--policy-dir', 'EXISTING', '--policy', 'NOPE'],
     ['stack', '--config-dir', 'MISSING'], ['stack', '--compression', 'gzip'], ['stack', '--thread-priority', '100'],
     ['replay', 'MISSING'], ['replay', FIXTURE_BAG, '--mode', 'NOPE'], ['replay', FIXTURE_BAG, '--algorithm', 'NOPE'],
@@ -142,10 +142,10 @@ RENAMED = [
      ['options-table', '--reward-variant', 'headway', '--reward-variant', 'calibrated']),
     (['compare', '--variant', 'base', '--variants', 'config/variants.yaml', '--mode', 'CONP'],
      ['compare', '--scenario-variant', 'base', '--scenario-variants', 'config/variants.yaml', '--score-mode', 'CONP']),
-    (['report', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP'],
-     ['report', '--policy', 'policies/gqn_AGGP', '--policy', 'policies/mdgqn_AGGP']),
-    (['plot', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP'],
-     ['plot', '--policy', 'policies/gqn_AGGP', '--policy', 'policies/mdgqn_AGGP']),
+    (['report', '--runs', 'policies/mdgqn_conditioned', 'policies/gqn_options_conditioned'],
+     ['report', '--policy', 'policies/mdgqn_conditioned', '--policy', 'policies/gqn_options_conditioned']),
+    (['plot', '--runs', 'policies/mdgqn_conditioned', 'policies/gqn_options_conditioned'],
+     ['plot', '--policy', 'policies/mdgqn_conditioned', '--policy', 'policies/gqn_options_conditioned']),
 ]
 
 
@@ -180,11 +180,27 @@ def test_the_stack_takes_a_policy_by_name_or_path_and_the_old_algorithm_and_poli
     assert stack_policy('gqn', policies) == (policies, 'gqn'), 'a per-mode method: its <name>_<mode>/ directories'
 
 
+def test_the_stack_takes_per_mode_policies_by_path_and_refuses_a_missing_mode_in_one_line(per_mode_policies, tmp_path,
+                                                                                         no_work, capsys):
+    """None ships: a per-mode method's policies are a directory's <method>_<mode>/ (issue 39)."""
+    import shutil
+
+    from exit_decision.cli.stack import stack_policy
+    modes = ('AGGI', 'AGGP', 'CONI', 'CONP')
+    for given in ('gqn', 'gqn_CONP', 'gqn_CONP/policy.pt'):
+        assert stack_policy(str(per_mode_policies / given), None, modes) == (per_mode_policies, 'gqn'), given
+    shutil.copytree(per_mode_policies / 'gqn_CONP', tmp_path / 'gqn_CONP')
+    assert main(['stack', '--policy', str(tmp_path / 'gqn_CONP')]) == 2
+    assert capsys.readouterr().err == (f"exit-decision stack: error: argument --policy: '{tmp_path}/gqn_CONP': no "
+                                       f"{tmp_path}/gqn_AGGP/policy.pt; gqn needs one for each mode of the run "
+                                       f"(AGGP, CONP)\n")
+
+
 def test_an_old_spelling_notes_its_new_one_on_stderr_after_the_command(monkeypatch, capsys):
     import exit_decision.evaluation.plots as plots
     monkeypatch.setattr(plots, 'make_all', lambda runs, evaluation, out: [f'{len(runs)} runs'])
     monkeypatch.chdir(REPO)
-    assert main(['plot', '--runs', 'policies/gqn_AGGP', 'policies/mdgqn_AGGP', '--out', 'runs/never']) == 0
+    assert main(['plot', '--runs', 'policies/mdgqn_conditioned', 'policies/gqn_options_conditioned', '--out', 'runs/never']) == 0
     out, err = capsys.readouterr()
     assert out == '2 runs\n'
     assert err == 'exit-decision plot: note: --runs is now --policy; the old spelling still works, for now\n'

@@ -43,14 +43,25 @@ def test_policy_names_and_paths_follow_one_rule(project_config):
         assert policy_path(default_policy_dir(), algorithm, mode).is_file(), 'every shipped policy is where the rule says'
 
 
-def test_checkpoints_without_an_action_space_act_on_the_grid_and_an_unknown_one_is_refused(tmp_path):
+def test_only_mode_conditioned_policies_ship():
+    """The first recipe's per-mode networks were stale (issue 39): no per-mode policy ships, and
+    the decision node loads none by default."""
+    from exit_decision.model.policy import load_policy
+
+    shipped = sorted(default_policy_dir().glob('*/policy.pt'))
+    assert shipped and {path.parent.name: load_policy(path).mode for path in shipped} == {
+        path.parent.name: None for path in shipped}
+    assert all(is_conditioned(algorithm) for algorithm in SHIPPED_ALGORITHMS)
+
+
+def test_checkpoints_without_an_action_space_act_on_the_grid_and_an_unknown_one_is_refused(tmp_path, per_mode_policies):
     import torch
 
     from exit_decision.model.policy import load_policy
 
-    shipped = policy_path(default_policy_dir(), 'gqn', 'AGGI')
-    assert load_policy(shipped).action_space == 'grid'
-    data = torch.load(shipped, weights_only=True)
+    per_mode = policy_path(per_mode_policies, 'gqn', 'AGGI')
+    data = torch.load(per_mode, weights_only=True)
+    assert 'action_space' not in data['metadata'] and load_policy(per_mode).action_space == 'grid'
     data['metadata']['action_space'] = 'thoughts'
     torch.save(data, tmp_path / 'policy.pt')
     with pytest.raises(PolicyError, match="action space 'thoughts' is not known; known: grid, options"):
@@ -101,7 +112,8 @@ def deciding(project_config):
     return shield, LanePlanner.of(config, shield), idle
 
 
-def test_the_shipped_policies_load_by_algorithm_and_mode_and_drive_in_the_mode_bound(project_config, deciding):
+def test_policies_load_by_algorithm_and_mode_and_drive_in_the_mode_bound(project_config, deciding, per_mode_policies):
+    """The shipped (conditioned) policies, and per-mode ones of a policy directory given."""
     from exit_decision.driving.policy import policy_driver
     from exit_decision.model.policy import load_controllers
 
@@ -110,10 +122,11 @@ def test_the_shipped_policies_load_by_algorithm_and_mode_and_drive_in_the_mode_b
     matrix = project_config.mode_matrix.modes
     controllers = load_controllers(project_config, default_policy_dir(), planned_policies(SHIPPED_ALGORITHMS, matrix),
                                    shield, planner)
-    assert len(controllers) == 2 * len(matrix) + 3
-    assert {algorithm: c.policy.action_space for (algorithm, mode), c in controllers.items() if mode is None} == {
+    assert {algorithm: c.policy.action_space for (algorithm, mode), c in controllers.items()} == {
         GRID_ALGORITHM: 'grid', DEFAULT_ALGORITHM: 'options', 'gqn_options_conditioned': 'options'}
-    assert controllers[('gqn', 'AGGI')].policy.action_space == 'grid', 'checkpoints without one: the grid'
+    controllers.update(load_controllers(project_config, per_mode_policies, planned_policies(['gqn'], matrix),
+                                        shield, planner))
+    assert all(controllers[('gqn', mode)].policy.mode == mode for mode in matrix)
     empty = TrafficSnapshot([])
     conditioned = policy_driver(controllers[(GRID_ALGORITHM, None)], project_config)
     with pytest.raises(PolicyError, match='no mode set'):
@@ -133,23 +146,24 @@ def test_the_shipped_policies_load_by_algorithm_and_mode_and_drive_in_the_mode_b
     assert per_mode.mode.name == 'AGGI', 'a refused mode changes nothing'
 
 
-def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding):
+def test_a_policy_that_does_not_fit_its_plan_is_refused(project_config, deciding, per_mode_policies):
     from exit_decision.model.policy import load_controller
 
     shield, planner, _ = deciding
-    shipped = policy_path(default_policy_dir(), 'gqn', 'AGGI')
+    per_mode = policy_path(per_mode_policies, 'gqn', 'AGGI')
     with pytest.raises(PolicyError, match="a policy of mode 'AGGI'; algorithm 'gqn' at mode 'CONP' needs one"):
-        load_controller(project_config, shipped, shield, planner, ('gqn', 'CONP'))
+        load_controller(project_config, per_mode, shield, planner, ('gqn', 'CONP'))
     with pytest.raises(PolicyError, match='not a mode-conditioned policy'):
-        load_controller(project_config, shipped, shield, planner, ('gqn_conditioned', None))
+        load_controller(project_config, per_mode, shield, planner, ('gqn_conditioned', None))
     conditioned = policy_path(default_policy_dir(), GRID_ALGORITHM)
     with pytest.raises(PolicyError, match="a mode-conditioned policy; algorithm 'mdgqn' needs one per mode"):
         load_controller(project_config, conditioned, shield, planner, ('mdgqn', 'AGGI'))
 
 
-def test_a_checkpoint_names_its_run_by_the_naming_rule(project_config):
+def test_a_checkpoint_names_its_run_by_the_naming_rule(project_config, per_mode_policies):
     from exit_decision.model.policy import load_policy
 
-    for algorithm, mode in planned_policies(SHIPPED_ALGORITHMS, project_config.mode_matrix.modes):
-        path = policy_path(default_policy_dir(), algorithm, mode)
-        assert load_policy(path).run_name == path.parent.name, 'evaluate and compare name a run as its directory'
+    for policy_dir, algorithms in ((default_policy_dir(), SHIPPED_ALGORITHMS), (per_mode_policies, ['gqn', 'mdgqn'])):
+        for algorithm, mode in planned_policies(algorithms, project_config.mode_matrix.modes):
+            path = policy_path(policy_dir, algorithm, mode)
+            assert load_policy(path).run_name == path.parent.name, 'evaluate and compare name a run as its directory'

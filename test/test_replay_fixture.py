@@ -8,7 +8,7 @@ import pytest
 
 from exit_decision.config import load_project
 from exit_decision.errors import PolicyError
-from exit_decision.model.names import default_policy_dir, policy_path
+from exit_decision.model.names import policy_path
 from exit_decision.ros.bags.storage import read_messages
 from exit_decision.ros.topics import COMMANDS_TOPIC
 from exit_decision.ros.bags.replay import check_fixture, replay_decisions
@@ -38,10 +38,10 @@ def test_a_changed_decision_fails_the_replay_naming_the_first_difference():
     assert first.startswith('episode 0 step ') and ': recorded (' in first and ', replayed (' in first, first
 
 
-def test_a_per_mode_policy_refuses_the_other_modes_decisions_in_one_line():
+def test_a_per_mode_policy_refuses_the_other_modes_decisions_in_one_line(per_mode_policies):
     """The fixture switches AGGP -> CONP: a per-mode policy of AGGP, given instead, decides the
     AGGP part and refuses at the first CONP decision, instead of deciding it as AGGP."""
     config = load_project(None, overrides=[FIXTURE / 'override.yaml'])
-    shipped = policy_path(default_policy_dir(), 'gqn', 'AGGP')
+    per_mode = policy_path(per_mode_policies, 'gqn', 'AGGP')
     with pytest.raises(PolicyError, match=r"a policy of mode 'AGGP' decides for that mode only, not for mode 'CONP' \(weights \["):
-        replay_decisions(FIXTURE / 'bag', config, default_policy_dir(), policy_file=shipped, rebuild_graph=True)
+        replay_decisions(FIXTURE / 'bag', config, per_mode_policies, policy_file=per_mode, rebuild_graph=True)

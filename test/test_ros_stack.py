@@ -198,7 +198,8 @@ def read_only_of_every_parameter(test: ProbeNode, node_name: str) -> dict[str, b
 
 def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(setup):
     process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': setup['policies'],
-                                           'algorithm': 'mdgqn_conditioned', 'mode': 'AGGI'},
+                                           'algorithm': 'mdgqn_conditioned', 'algorithms': ['mdgqn_conditioned', 'gqn'],
+                                           'mode': 'AGGI'},
                          setup['root'] / 'decision_weights.log')
     test = ProbeNode('weights_test')
     try:
@@ -218,6 +219,7 @@ def test_conditioned_policy_takes_any_reward_weights_and_keeps_mode_consistent(s
         assert get_parameters(test, 'decision_node', ['mode']) == ['AGGI'], 'and the node lives on'
         refused = set_parameter(test, 'decision_node', 'algorithm', 'gqn')
         assert refused.successful, 'per-mode gqn has a policy for AGGI'
+        assert set_parameter(test, 'decision_node', 'mode', 'CONP').successful, 'and one for CONP'
         refused = set_parameter(test, 'decision_node', 'reward_weights', point)
         assert not refused.successful and 'conditioned' in refused.reason
     finally:
@@ -242,7 +244,7 @@ def test_missing_policy_fails_at_start_naming_the_path(setup, tmp_path):
     process = start_node('decision_node', {'config_dir': setup['config_dir'], 'policy_dir': str(tmp_path)},
                          tmp_path / 'decision.log')
     assert process.wait(60) == 1
-    assert f'{tmp_path}/gqn_AGGI/policy.pt: no such policy file' in (tmp_path / 'decision.log').read_text()
+    assert f'{tmp_path}/mdgqn_conditioned/policy.pt: no such policy file' in (tmp_path / 'decision.log').read_text()
 
 
 def start_episode(test: ProbeNode, episode: int):

@@ -44,23 +44,39 @@ def check_thread_priority(priority: int) -> None:
         raise UsageError(f'--thread-priority {reason}')
 
 
-def stack_policy(reference: str | None, policy_dir: Path | None) -> tuple[Path | None, str]:
+def stack_policy(reference: str | None, policy_dir: Path | None, modes=()) -> tuple[Path | None, str]:
     """(policy_dir, algorithm) the decision node takes for ``--policy``: a directory name under
     policies/ (or under the old ``--policy-dir``), the path of a policy directory or of its
-    policy.pt (a directory named as its algorithm), or a per-mode method's name (gqn, mdgqn: its
-    <name>_<mode>/ directories); ``None``: the shipped policy."""
+    policy.pt (a directory named as its algorithm; one named ``<method>_<mode>``, a mode of
+    ``modes``, is a per-mode policy: its method's, the other modes' beside it), or a per-mode
+    method's name or path (``DIR/gqn``: the policies in DIR/gqn_<mode>/); ``None``: the shipped policy."""
     if reference is None:
         return policy_dir, DEFAULT_ALGORITHM
     path = policy_dir / reference if policy_dir else Path(reference)
     if path.is_file():
         path = path.parent
     if (path / 'policy.pt').is_file():
-        return path.parent, path.name
+        method, _, mode = path.name.rpartition('_')
+        return path.parent, method if method and mode in modes else path.name
     if len(Path(reference).parts) == 1:   # a name: of the shipped policies/ (or --policy-dir), or a per-mode method
         return policy_dir, reference
+    if any(path.parent.glob(f'{path.name}_*/policy.pt')):   # a per-mode method's path
+        return path.parent, path.name
     raise OptionError(f'argument --policy: {reference!r}: no policy.pt in {path}; allowed: a directory name under '
-                      f'policies/, a per-mode method ({", ".join(a for a in SHIPPED_ALGORITHMS if "_" not in a)}), or '
-                      f'the path of a policy directory or of its policy.pt')
+                      f'policies/, a per-mode method (its name, or DIR/<name> for its DIR/<name>_<mode>/ '
+                      f'directories), or the path of a policy directory or of its policy.pt')
+
+
+def check_policies(reference: str | None, policy_dir: Path | None, algorithm: str, modes: list[str]) -> None:
+    """Before anything starts: a policy the decision node would load for ``modes`` and is not
+    there is one line (a per-mode method needs one for each mode of the run; none ships)."""
+    from exit_decision.model.names import default_policy_dir, is_conditioned, policy_path
+    for mode in modes:
+        path = policy_path(policy_dir or default_policy_dir(), algorithm, mode)
+        if not path.is_file():
+            each = '' if is_conditioned(algorithm) else \
+                f'; {algorithm} needs one for each mode of the run ({", ".join(modes)})'
+            raise OptionError(f'argument --policy: {reference!r}: no {path}{each}')
 
 
 def cmd_stack(args: argparse.Namespace) -> int:
@@ -73,7 +89,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     config = load_project(args.config_dir)   # fail early, with the key, on a bad config
     check_thread_priority(args.thread_priority)
     matrix = config.mode_matrix
-    args.policy_dir, args.algorithm = stack_policy(args.policy, args.policy_dir)
+    args.policy_dir, args.algorithm = stack_policy(args.policy, args.policy_dir, config.modes)
     known_algorithm(args.algorithm, config, '--policy')
     mode = args.start_mode or matrix.aggressive.punished
     switch_to = matrix.conservative.punished if args.switch_to is None else args.switch_to or None
@@ -85,6 +101,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
                               f'max_steps ({config.scenario.max_steps}), or --switch-to "" for no switch')
     # another method than the shipped ones: the node loads its policies for the modes of this run only
     modes = [] if args.algorithm in SHIPPED_ALGORITHMS else [mode, *([switch_to] if switch_to else [])]
+    check_policies(args.policy, args.policy_dir, args.algorithm, modes)
     stamp = f'{datetime.now():%Y%m%d_%H%M%S}'
     bag = args.bag or free_bag_path(Path('bags') / f'exit_decision_{stamp}')
     log_dir = Path('runs') / 'stack_logs' / stamp
@@ -169,10 +186,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help='step of the first episode to switch at, below the scenario\'s max_steps')
     policy = stack.add_argument(
         '--policy', default=None,
-        help='the policy the decision node runs: a directory name under policies/ (shipped: '
-             f'{", ".join(a for a in SHIPPED_ALGORITHMS if "_" in a)}), a per-mode method whose <name>_<mode>/ '
-             'directories are there (gqn, mdgqn), or the path of a policy directory or of its policy.pt (a '
-             f'directory named as its algorithm, <method>[_options][_conditioned]); default: {DEFAULT_ALGORITHM}')
+        help='the policy the decision node runs: a directory name under policies/ (shipped, all mode-conditioned: '
+             f'{", ".join(SHIPPED_ALGORITHMS)}), the path of a policy directory or of its policy.pt (a directory '
+             'named as its algorithm, <method>[_options][_conditioned], or <method>_<mode> for a per-mode one), or '
+             'a per-mode method (none ships: train them with --conditioning <mode>) as DIR/<method>, whose '
+             f'DIR/<method>_<mode>/ directories hold a policy for each mode of the run; default: {DEFAULT_ALGORITHM}')
     renamed(stack, '--algorithm', policy)
     stack.add_argument('--policy-dir', action=Replaced, type=existing('dir'), default=None,
                        hint='give --policy DIR/<name> (a policy directory\'s path)')

@@ -7,6 +7,8 @@ checkpoint is ``<policy dir>/<run>/policy.pt``. An *algorithm*, as the decision 
 and ``exit-decision stack`` take it, is ``<method>`` (its per-mode policies) or
 ``<method>_conditioned``. A method trained over options (``train --action-space options``)
 has ``_options`` after the method's name: ``mdgqn_options_conditioned``, ``gqn_options_AGGI``.
+Only mode-conditioned policies ship; per-mode ones are trained with ``train --conditioning
+<mode>`` and loaded from a policy directory given.
 """
 from __future__ import annotations
 
@@ -24,8 +26,9 @@ OPTIONS_SUFFIX = '_options'
 DEFAULT_ALGORITHM = 'mdgqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX
 #: the mode-conditioned MDGQN on paper 000's 81-action grid (the comparison sweep's policy)
 GRID_ALGORITHM = 'mdgqn' + CONDITIONED_SUFFIX
-#: the algorithms whose policies are shipped in policies/ (gqn, mdgqn: per mode, on the grid)
-SHIPPED_ALGORITHMS = ('gqn', 'mdgqn', GRID_ALGORITHM, DEFAULT_ALGORITHM, 'gqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX)
+#: the algorithms whose policies are shipped in policies/, all mode-conditioned (no per-mode one
+#: ships: the first recipe's were stale, issue 39)
+SHIPPED_ALGORITHMS = (GRID_ALGORITHM, DEFAULT_ALGORITHM, 'gqn' + OPTIONS_SUFFIX + CONDITIONED_SUFFIX)
 #: a planned policy: (algorithm, mode), mode None for a conditioned algorithm's one policy
 Planned = tuple[str, str | None]
 

@@ -54,9 +54,10 @@ ARGUMENTS: dict[str, Argument] = {
     'mode': Argument('AGGP', "decision mode at start, a mode of config/modes.yaml; empty: the decision node's "
                              "default, the first mode of the matrix"),
     'algorithm': Argument(DEFAULT_ALGORITHM, 'a learned method of config/training.yaml with policies in policy_dir '
-                                             f'(shipped: {", ".join(SHIPPED_ALGORITHMS)}; the default decides over options)'),
-    'modes': Argument('', "modes whose policies the decision node loads, a list such as [CONP]; empty: every mode "
-                          "of config/modes.yaml", list),
+                                             f'(shipped, all mode-conditioned: {", ".join(SHIPPED_ALGORITHMS)}; the '
+                                             'default decides over options)'),
+    'modes': Argument('', "modes whose per-mode policies the decision node loads (for an algorithm without "
+                          "_conditioned), a list such as [CONP]; empty: every mode of config/modes.yaml", list),
     'episodes': Argument('1', 'episodes the bridge runs, 0 = until stopped', int),
     'seed': Argument(str(TEST_SEED), 'seed of the first episode', int),
     'timing': Argument('synchronous', 'synchronous or realtime'),
@@ -72,7 +73,8 @@ ARGUMENTS: dict[str, Argument] = {
     'thread_priority': Argument('0', realtime.DESCRIPTION, int),
     'cpu_split': Argument('true', cpu_affinity.SPLIT_DESCRIPTION, bool),
     'config_dir': Argument('', 'directory with the YAML config; empty: the installed share/exit_decision/config'),
-    'policy_dir': Argument('', 'directory with <algorithm>_<mode>/policy.pt; empty: the shipped policies'),
+    'policy_dir': Argument('', 'directory with <algorithm>/policy.pt (a per-mode one: <algorithm>_<mode>/policy.pt); '
+                               'empty: the shipped policies'),
 }
 
 NODES: tuple[StackNode, ...] = (
