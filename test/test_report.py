@@ -76,3 +76,25 @@ def test_the_readmes_verdict_and_table_are_what_report_writes_from_the_options_t
     assert readme.index(README_BLOCKS['verdict'][0]) < readme.index('\n## '), 'the verdict comes before the first section'
     outside = readme.replace(block('verdict'), '')
     assert not re.search(r'\bsafe(?:ly|r)?\b(?!-)', outside.split('## Glossary')[0], re.IGNORECASE)
+
+
+def test_each_training_run_is_named_with_its_recipe_from_its_config(tmp_path):
+    """The results page says how each policy was made (issue 39: the grid's MDGQN stays, by its recipe)."""
+    import json
+
+    from exit_decision.evaluation.report import training_lines
+
+    def run(name, demonstrations, updates, episodes, seed, variant):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / 'config.json').write_text(json.dumps({'episodes': episodes, 'seed': seed, 'config': {
+            'training': {'demonstrations': {'episodes': demonstrations, 'pretrain_updates': updates}},
+            'env': {'reward_variant': variant}}}))
+        write_rows(tmp_path / name / 'validation.csv', [{'episode': 0, 'score': 0.1, 'mode': 'AGGI', 'gain': 0.1, 'p_CAV': 1.0}])
+        return tmp_path / name
+
+    grid, options = training_lines([run('mdgqn_conditioned', 160, 40000, 500, 0, 'calibrated'),
+                                    run('gqn_options_conditioned', 0, 0, 600, 2, 'headway')])
+    assert grid.startswith("- mdgqn_conditioned (the grid's MDGQN): 160 demonstration episodes, 40000 pre-training "
+                           'updates, 500 RL episodes, seed 0, reward variant `calibrated`; kept the checkpoint of episode 0')
+    assert options.startswith('- gqn_options_conditioned: no demonstrations, no pre-training, 600 RL episodes, seed 2, '
+                              'reward variant `headway`;')

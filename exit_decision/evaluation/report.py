@@ -18,7 +18,8 @@ from exit_decision.driving import fixed
 from exit_decision.evaluation.evaluate import EvaluatedRun, EvaluationResult, evaluate_policy, play_episodes, scored_episodes
 from exit_decision.evaluation.metrics import markdown_table, summarize
 from exit_decision.evaluation.statistics import paired_difference, paired_interval
-from exit_decision.model.names import DEFAULT_ALGORITHM, GRID_ALGORITHM, ROLES, is_conditioned, method_of, run_name
+from exit_decision.model.names import (DEFAULT_ALGORITHM, GRID_ALGORITHM, ROLES, described, is_conditioned, method_of,
+                                       run_name)
 from exit_decision.tables import read_rows, write_rows
 from exit_decision.visualization.episodes import ShowEpisodes
 
@@ -213,8 +214,22 @@ def speed_orderings(evaluation_dir: Path, run: str, pairs: Sequence[tuple[str, s
     return lines
 
 
+def recipe(run_dir: Path) -> str | None:
+    """A training run's recipe as its config.json gives it (demonstrations, pre-training, RL
+    episodes, seed, reward variant); None without one."""
+    path = run_dir / 'config.json'
+    if not path.exists():
+        return None
+    run = json.loads(path.read_text())
+    demonstrations = run['config']['training']['demonstrations']
+    taught = (f'{demonstrations["episodes"]} demonstration episodes, {demonstrations["pretrain_updates"]} pre-training '
+              'updates' if demonstrations['episodes'] else 'no demonstrations, no pre-training')
+    return (f'{taught}, {run["episodes"]} RL episodes, seed {run["seed"]}, reward variant '
+            f'`{run["config"]["env"]["reward_variant"]}`')
+
+
 def training_lines(run_dirs: Sequence[Path]) -> list[str]:
-    """Per training run: the checkpoint kept, its validation and the run's wall time."""
+    """Per training run: its recipe, the checkpoint kept, its validation and the run's wall time."""
     lines = []
     for run_dir in run_dirs:
         validation = run_dir / 'validation.csv'
@@ -225,9 +240,9 @@ def training_lines(run_dirs: Sequence[Path]) -> list[str]:
         kept = [r for r in rows if r['episode'] == best['episode']]
         timing = run_dir / 'timing.json'
         wall = json.loads(timing.read_text()) if timing.exists() else {}
-        episodes = max(int(r['episode']) for r in rows)
-        lines.append(f'- {run_dir.name}: {episodes} RL episodes after pre-training'
-                     + (f', {wall["total_s"] / 60:.0f} min wall time ({wall.get("note", "")})' if wall else '')
+        made = recipe(run_dir) or f'{max(int(r["episode"]) for r in rows)} RL episodes after pre-training'
+        lines.append(f'- {described(run_dir.name)}: {made}'
+                     + (f'; {wall["total_s"] / 60:.0f} min wall time ({wall.get("note", "")})' if wall else '')
                      + f'; kept the checkpoint of episode {best["episode"]} (score {float(best["score"]):.3f}): '
                      + ', '.join(f'{r["mode"]} gain {float(r["gain"]):+.3f}, Exit-1 {float(r["p_CAV"]):.3f}' for r in kept))
     return lines

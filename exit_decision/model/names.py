@@ -38,8 +38,8 @@ ROLES = {DEFAULT_ALGORITHM: 'the shipped policy', GRID_ALGORITHM: "the grid's MD
 
 
 def described(name: str) -> str:
-    """A policy's name as a figure's title gives it: the grid's MDGQN says so (not the shipped
-    policy: a figure may outlive what ships)."""
+    """A policy's name as a figure's title and the results page's training runs give it: the
+    grid's MDGQN says so (not the shipped policy: a figure may outlive what ships)."""
     return f'{name} ({ROLES[name]})' if name == GRID_ALGORITHM else name
 
 
