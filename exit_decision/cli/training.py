@@ -62,8 +62,9 @@ def cmd_anchor(args: argparse.Namespace) -> int:
 TRAIN_EXAMPLES = '''examples:
   # the shipped policy, the MDGQN over options for every mode (as scripts/train_policies trains it)
   exit-decision train --algorithm mdgqn --conditioning conditioned --action-space options --override config/overrides/options_no_demonstrations.yaml --seed 2 --episodes 800 --out runs/mdgqn_options_conditioned
-  # a per-mode GQN on the 81-action grid
-  exit-decision train --algorithm gqn --conditioning CONP --seed 1 --out runs/gqn_CONP_seed1
+  # a per-mode GQN on the 81-action grid (none ships), then the stack on it: its directory is <method>_<mode>
+  exit-decision train --algorithm gqn --conditioning CONP --seed 1 --out runs/per_mode/gqn_CONP
+  exit-decision stack --policy runs/per_mode/gqn_CONP --start-mode CONP --switch-to ""
   # a short trial of the default (the conditioned MDGQN on the grid: demonstrations, pre-training, RL)
   exit-decision train --episodes 20 --out runs/trial
 '''
