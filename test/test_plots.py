@@ -130,3 +130,22 @@ def test_the_tradeoff_is_redrawn_from_its_csv_with_names_that_do_not_overlap(tmp
         extents = list(boxes.values())
         assert not any(a.overlaps(b) for i, a in enumerate(extents) for b in extents[i + 1:]), 'names overlap'
     assert titles[0].startswith('x: one checkpoint at every weight point (20 seeds each')
+
+
+def test_a_learning_curve_has_flattened_only_with_enough_validations_and_a_slope_reaching_zero():
+    """Issue 39's budget: >= 6 validations in the last third, the fitted slope's 95% interval reaching 0."""
+    import numpy as np
+
+    from exit_decision.evaluation.statistics import last_third_slopes, slope_interval
+
+    x = np.arange(10.0)
+    slope, low, high = slope_interval(x, 2.0 * x + 1.0 + np.tile([0.1, -0.1], 5))
+    assert low < slope < high and abs(slope - 2.0) < 0.05 and high - low < 0.2
+    rising = [{'episode': e, 'mode': 'AGGI', 'gain': 0.01 * e} for e in range(0, 301, 20)]
+    level = [{'episode': e, 'mode': 'CONP', 'gain': 0.3 + 0.02 * (-1) ** (e // 20)} for e in range(0, 301, 20)]
+    sparse = [{'episode': e, 'mode': 'AGGP', 'gain': 0.3 + 0.02 * (-1) ** (e // 50)} for e in range(0, 301, 50)]
+    fits = last_third_slopes(rising + level + sparse)
+    assert fits['AGGI']['validations'] == fits['CONP']['validations'] == 6 and fits['AGGI']['from_episode'] == 200
+    assert not fits['AGGI']['flat'] and fits['AGGI']['low'] > 0, 'still rising'
+    assert fits['CONP']['flat'] and fits['CONP']['low'] <= 0 <= fits['CONP']['high']
+    assert not fits['AGGP']['flat'], 'level, but 3 validations in its last third are too few'

@@ -15,9 +15,19 @@ from exit_decision.model.names import DEFAULT_ALGORITHM
 def cmd_plot(args: argparse.Namespace) -> int:
     """PNG figures from training runs and an evaluation directory."""
     from exit_decision.evaluation.plots import make_all
+    from exit_decision.evaluation.statistics import MIN_LAST_THIRD_VALIDATIONS, last_third_slopes
+    from exit_decision.tables import read_rows
 
     for path in make_all(args.policy, args.evaluation, args.out):
         print(path)
+    for run in args.policy or []:
+        if (run / 'validation.csv').exists():
+            print(f'{run}: the validation gain\'s slope over the last third of training, per 100 episodes [95%] '
+                  f'(flattened: >= {MIN_LAST_THIRD_VALIDATIONS} validations there and the interval reaches 0)')
+            for mode, fit in last_third_slopes(read_rows(run / 'validation.csv')).items():
+                print(f'  {mode}: {100 * fit["slope"]:+.3f} [{100 * fit["low"]:+.3f}, {100 * fit["high"]:+.3f}] from '
+                      f'episode {fit["from_episode"]}, {fit["validations"]} validations: '
+                      f'{"flattened" if fit["flat"] else "not flattened"}')
     return 0
 
 

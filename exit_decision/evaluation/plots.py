@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, TEACHER  # noqa: E402
-from exit_decision.evaluation.statistics import paired_differences, paired_interval  # noqa: E402
+from exit_decision.evaluation.statistics import last_third_slopes, paired_differences, paired_interval  # noqa: E402
 from exit_decision.model.names import described  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
@@ -116,16 +116,26 @@ def validation_curves(run_dir: Path, out: Path, exit_target: float = 0.99) -> Pa
     if not rows or 'gain' not in rows[0]:
         return None
     fig, (gain_ax, exit_ax) = plt.subplots(1, 2, figsize=(10, 3.4))
+    slopes = last_third_slopes(rows)
     for mode in dict.fromkeys(row['mode'] for row in rows):
         own = [row for row in rows if row['mode'] == mode]
         episodes = [int(row['episode']) for row in own]
         gains = np.array([float(row['gain']) for row in own])
-        gain_ax.plot(episodes, gains, marker='o', label=mode)
+        line, = gain_ax.plot(episodes, gains, marker='o', label=mode)
+        fitted = slopes[mode]
+        if np.isfinite(fitted['slope']):   # the last third's fitted line (has the curve flattened?)
+            last = np.array([e for e in episodes if e >= fitted['from_episode']])
+            mean_x, mean_y = last.mean(), np.mean([g for e, g in zip(episodes, gains) if e >= fitted['from_episode']])
+            gain_ax.plot(last, mean_y + fitted['slope'] * (last - mean_x), color=line.get_color(), linestyle=':')
         gain_ax.fill_between(episodes, [float(row['gain_low']) for row in own],
                              [float(row['gain_high']) for row in own], alpha=0.15)
         exit_ax.plot(episodes, [float(row['p_CAV']) for row in own], marker='o', label=mode)
-    gain_ax.axhline(0.0, color='black', linestyle='--', label='teacher (neutral rule-based)')
+    described_run = run_dir / 'config.json'
+    options = described_run.exists() and json.loads(described_run.read_text()).get('action_space') == 'options'
+    gain_ax.axhline(0.0, color='black', linestyle='--',
+                    label='teacher: the best fixed driver' if options else 'teacher (neutral rule-based)')
     gain_ax.set_ylabel('return − teacher (validation, paired)')
+    gain_ax.set_title('dotted: the last third\'s fitted line', fontsize=8)
     exit_ax.axhline(exit_target, color='red', linestyle=':', label=f'target {exit_target:g}')
     if 'teacher_p_CAV' in rows[0]:
         exit_ax.axhline(float(rows[0]['teacher_p_CAV']), color='black', linestyle='--', label='teacher')

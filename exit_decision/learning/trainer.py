@@ -160,7 +160,8 @@ class Trainer:
                                   f'--resume {self.out_dir / "last.pt"}, or choose another --out')
         self.out_dir.mkdir(parents=True, exist_ok=True)
         (self.out_dir / 'config.json').write_text(json.dumps(
-            {'algorithm': self.algorithm, 'mode': self.mode, 'seed': self.seed, 'episodes': episodes,
+            {'algorithm': self.algorithm, 'mode': self.mode, 'action_space': self.action_space, 'seed': self.seed,
+             'episodes': episodes,
              'init': None if init is None else str(init), 'config': self.config.model_dump()}, indent=2))
         clock = {'start': time.monotonic()}
         demo = self.training.demonstrations
