@@ -12,7 +12,6 @@ from rclpy.serialization import serialize_message
 
 from exit_decision.config import default_config_dir, load_project
 from exit_decision.graph import FEATURE_SETS
-from exit_decision.ros.bags.storage import read_messages
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.intake import Intake
 from exit_decision.ros.messages.commands_cdr import encode_commands

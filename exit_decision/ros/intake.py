@@ -32,7 +32,7 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
 
 from exit_decision.ros.diagnostics import Diagnostics
-from exit_decision.ros.messages.sizes import DEFAULT_LIMIT, limits_of  # noqa: F401 (limits_of: for the nodes)
+from exit_decision.ros.messages.sizes import DEFAULT_LIMIT, limits_of
 
 
 def short(topic: str) -> str:
@@ -45,6 +45,11 @@ class Intake:
 
     def __init__(self, node: Node, diagnostics: Diagnostics, limits: Mapping[str, int]):
         self.node, self.diagnostics, self.limits = node, diagnostics, dict(limits)
+
+    @classmethod
+    def of_config(cls, node: Node, diagnostics: Diagnostics, config) -> Intake:
+        """A stack node's intake: the limits of ``config``'s graph and layouts (``messages.sizes``)."""
+        return cls(node, diagnostics, limits_of(config))
 
     def limit(self, topic: str) -> int:
         """[bytes] the most a message on ``topic`` may have (``DEFAULT_LIMIT`` for a topic of others)."""

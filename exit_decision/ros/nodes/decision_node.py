@@ -31,7 +31,7 @@ from exit_decision.input_checks import InputError, StateLimits
 from exit_decision.model.selection import SELECTION_PARAMETERS
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake, limits_of
+from exit_decision.ros.intake import Intake
 from exit_decision.ros.messages.commands_cdr import encode_commands
 from exit_decision.ros.messages.conversions import graph_from_msg, options_to_msg, overrides_to_msg
 from exit_decision.ros.parameters import (declare_config, declare_cpu_affinity, declare_policy_selection,
@@ -96,7 +96,7 @@ class DecisionNode(Node):
         self.overrides_publisher = self.create_publisher(ShieldOverrideArray, OVERRIDES_TOPIC, COMMANDS_QOS)
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
-            self.intake = Intake(self, self.diagnostics, limits_of(self.config))
+            self.intake = Intake.of_config(self, self.diagnostics, self.config)
             self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
             self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
             self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from exit_decision.graph import GraphBuilder, GraphCapacityError, GraphInputError
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake, limits_of
+from exit_decision.ros.intake import Intake
 from exit_decision.ros.parameters import declare_config, declare_cpu_affinity, declare_thread_priority
 from exit_decision.ros.topics import EPISODE_TOPIC, EVENT_QOS, GRAPH_QOS, GRAPH_TOPIC, STATES_QOS, STATES_TOPIC
 from exit_decision.ros.messages.conversions import graph_to_msg
@@ -59,7 +59,7 @@ class GraphBuilderNode(Node):
         self.gate = StepGate(config.scenario.max_steps, max_gap=2 * self.interval)   # one decision step may go missing
         self.feature_set = config.graph.feature_set
         self.diagnostics = Diagnostics(self, 'graph_builder')
-        self.intake = Intake(self, self.diagnostics, limits_of(config))
+        self.intake = Intake.of_config(self, self.diagnostics, config)
         self.publisher = self.create_publisher(TrafficGraph, GRAPH_TOPIC, GRAPH_QOS)
         if decision is None:
             self.subscribe()

@@ -44,7 +44,7 @@ from exit_decision.ros.bags.storage import (COMPRESSIONS, DEFAULT_TOPICS, KNOWN_
                                             topic_qos, typestore)
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake, limits_of, short
+from exit_decision.ros.intake import Intake, short
 from exit_decision.errors import ParameterError
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           describe)
@@ -96,7 +96,7 @@ class Recorder(Node):
         self.gaps = {topic: StepGaps(stride) for topic, stride in
                      ((STATES_TOPIC, 1), (GRAPH_TOPIC, interval), (COMMANDS_TOPIC, interval)) if topic in topics}
         self.diagnostics = Diagnostics(self, 'recorder')
-        self.intake = Intake(self, self.diagnostics, limits_of(config))
+        self.intake = Intake.of_config(self, self.diagnostics, config)
         self.diagnostics.figures.append(lambda: {f'recorded_{short(topic)}': count
                                                  for topic, count in self.counts.items()})
         self.waiting = [topic for topic in topics if not self.subscribe(topic, KNOWN_TOPICS.get(topic))]

@@ -38,7 +38,7 @@ from exit_decision.config.seeds import TEST_SEED
 from exit_decision.env import ExitDecisionEnv
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import Waiter, run_node, take_waiting
-from exit_decision.ros.intake import Intake, limits_of
+from exit_decision.ros.intake import Intake
 from exit_decision.ros.parameters import (check_choice, declare, declare_config, declare_cpu_affinity,
                                           declare_thread_priority, describe, follow)
 from exit_decision.ros.topics import (CLOCK_QOS, CLOCK_TOPIC, COMMANDS_QOS, COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS,
@@ -101,7 +101,7 @@ class SumoBridge(Node):
         self.diagnostics = Diagnostics(self, 'sumo_bridge')
         # its one subscription: its wait for commands takes this queue only, and nothing else the
         # process could be sent (other topics) reaches it
-        self.commands = Intake(self, self.diagnostics, limits_of(self.config)).subscribe(
+        self.commands = Intake.of_config(self, self.diagnostics, self.config).subscribe(
             CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS, raw=True)
         self.episode = 0
         self.published_step = -1            # step of the newest published states

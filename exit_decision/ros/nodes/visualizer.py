@@ -35,7 +35,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from exit_decision.input_checks import StateLimits, StepGate
 from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
-from exit_decision.ros.intake import Intake, limits_of
+from exit_decision.ros.intake import Intake
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
                                       MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC,
@@ -99,7 +99,7 @@ class Visualizer(Node):
         self.markers: dict = {}   # Marker messages reused frame to frame (marker_array)
         self.publisher = self.create_publisher(MarkerArray, MARKERS_TOPIC, STREAM_QOS)
         self.diagnostics = Diagnostics(self, 'visualizer')
-        intake = Intake(self, self.diagnostics, limits_of(config))
+        intake = Intake.of_config(self, self.diagnostics, config)
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (executor.Waiter) empties the queue of the subscription created first first
         self.events = intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
