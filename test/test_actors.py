@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -111,6 +112,19 @@ def test_train_with_actors_joins_a_running_cluster_and_its_checkpoint_learnt(ray
     initial = torch.load(out / 'candidates' / 'episode_00000.pt', weights_only=True)['state_dict']
     last = torch.load(out / 'last.pt', weights_only=True)['online']
     assert any(not torch.equal(last[key], initial[key]) for key in initial), 'the weights moved'
+
+
+def test_without_an_address_a_run_starts_a_ray_of_its_own_beside_a_running_cluster(ray_cluster):
+    """`train --actors N` (and `compare`, `bench learning --actors`) without --address: a local
+    Ray of N CPUs, not the cluster `ray start` left on this machine."""
+    import exit_decision
+    from exit_decision.learning.actors import start_ray
+    start_ray(None, 1, Path(exit_decision.__file__).resolve().parent.parent)
+    import ray   # after start_ray: it sets what Ray reads at import (loopback only)
+    try:
+        assert ray.cluster_resources().get('CPU') == 1, ray.cluster_resources()
+    finally:
+        ray.shutdown()
 
 
 def test_the_comparison_sweep_joins_a_running_cluster(ray_cluster, tmp_path):
