@@ -3,6 +3,7 @@ benchmark, ``bench ros``, is ``exit_decision.ros.stack.bench``)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from exit_decision.config import ProjectConfig
@@ -47,18 +48,28 @@ LEARNING_RECIPES = (('the grid\'s conditioned MDGQN (demonstrations)', 'mdgqn', 
                      'overrides/options_prior.yaml'))
 
 
+#: the recipe ``bench learning --actors`` trains: the shipped one, one step over the prior
+ACTOR_RECIPE = LEARNING_RECIPES[2]
+
+
+def recipe_config(config_dir: Path | None, scenario_override, overrides, recipe: tuple) -> ProjectConfig:
+    """The config of a recipe of ``LEARNING_RECIPES``: its override file over the given ones."""
+    from exit_decision.config import default_config_dir, load_project
+    override = recipe[3]
+    extra = [(config_dir or default_config_dir()) / override] if override else []
+    return load_project(config_dir, scenario_override, [*overrides, *extra])
+
+
 def bench_learning(config_dir: Path | None, scenario_override, overrides, seed: int, episodes: int = 2) -> str:
     """Per recipe (``LEARNING_RECIPES``): an episode's time without and with learning and their
     ratio, the updates per episode (``updates_per_decision`` per decision: the ratio is not bought
     by updating less), the time of one gradient update, and one greedy forward."""
-    from exit_decision.config import default_config_dir, load_project
-
     lines = [f'learning benchmark ({episodes} episode(s) each way, torch threads: 1, one process)',
              f'{"recipe":<74} {"update [ms]":>11} {"episode [s]":>11} {"+learning [s]":>13} {"ratio":>6} '
              f'{"updates/ep":>10}']
-    for label, algorithm, action_space, override in LEARNING_RECIPES:
-        extra = [(config_dir or default_config_dir()) / override] if override else []
-        config = load_project(config_dir, scenario_override, [*overrides, *extra])
+    for recipe in LEARNING_RECIPES:
+        label, algorithm, action_space, _ = recipe
+        config = recipe_config(config_dir, scenario_override, overrides, recipe)
         figures = _learning_figures(config, algorithm, action_space, seed, episodes)
         lines.append(f'{label:<74} {figures["update_ms"]:>11.2f} {figures["without"]:>11.2f} {figures["with"]:>13.2f} '
                      f'{figures["with"] / figures["without"]:>5.1f}x {figures["updates_per_episode"]:>10.0f}')
@@ -165,6 +176,145 @@ def _update_parts(trainer, count: int = 100) -> dict[str, float]:
         for part, (begin, end) in zip(parts, zip([started, *marks[:-1]], marks)):
             parts[part] += (end - begin) * 1000 / count
     return parts
+
+
+@dataclass(frozen=True)
+class Collected:
+    """A timed run of training episodes: its ``decisions`` and ``updates`` in ``seconds`` of
+    episodes, after ``start`` seconds of getting its collectors up (Ray and the actors, their
+    simulations made; 0 in this process)."""
+    decisions: int
+    updates: int
+    seconds: float
+    start: float = 0.0
+
+    @property
+    def wall(self) -> float:
+        return self.start + self.seconds
+
+    def per_second(self, count: int) -> float:
+        return count / self.seconds if self.seconds > 0 else float('nan')
+
+
+def bench_actors(config_dir: Path | None, scenario_override, overrides, seed: int, actors: list[int],
+                 episodes: int) -> str:
+    """``bench learning --actors``: the shipped recipe (``ACTOR_RECIPE``) trained for ``episodes``
+    episodes with each number of ``actors`` (0: in this process; the trainer's own loops, without
+    validation or checkpoints), then, with updates off, collected by each number of actors and by
+    as many plain processes without Ray (the ceiling of the scaling); ``actor_table``."""
+    label, algorithm, action_space, _ = ACTOR_RECIPE
+    config = recipe_config(config_dir, scenario_override, overrides, ACTOR_RECIPE)
+    counts = sorted(set(actors))
+    prior = _measured_prior(config, algorithm, action_space, seed) if action_space == 'options' else None
+    run = (algorithm, action_space, seed, episodes, prior)
+    learning = {count: timed_episodes(config, *run, actors=count) for count in counts}
+    alone = config.model_copy(update={'training': config.training.model_copy(update={'updates_per_decision': 0})})
+    collecting = {count: timed_episodes(alone, *run, actors=count) for count in counts if count}
+    plain = {count: plain_processes(alone, *run, count=count) for count in counts if count}
+    return actor_table(f'{label}, updates_per_decision {config.training.of_method(algorithm).updates_per_decision}',
+                       episodes, learning, collecting, plain)
+
+
+def _measured_prior(config: ProjectConfig, algorithm: str, action_space: str, seed: int):
+    """The prior over options (``Trainer.use_prior``) on two validation seeds, measured once for
+    every run of ``bench_actors`` (untimed)."""
+    import tempfile
+
+    from exit_decision.learning.trainer import Trainer
+    from exit_decision.learning.validation import validation_seeds
+    from exit_decision.model.names import CONDITIONED
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(config, algorithm, CONDITIONED, seed, Path(tmp), action_space)
+        trainer.use_prior(validation_seeds(2), progress=False)
+        trainer.env.close()
+    return trainer.collector.prior
+
+
+def timed_episodes(config: ProjectConfig, algorithm: str, action_space: str, seed: int, episodes: int, prior,
+                   actors: int = 0, barrier=None) -> Collected:
+    """``episodes`` training episodes of a new conditioned run (``prior``: the measured prior, or
+    None), by the trainer's own loop: in this process (``actors`` 0: ``Trainer.episodes_here``)
+    or on that many actors of a local Ray (``Trainer.episodes_on_actors``), timed from when every
+    actor is up; ``barrier``: waited on just before (plain processes start together)."""
+    import tempfile
+
+    from exit_decision.learning.trainer import Trainer
+    from exit_decision.model.names import CONDITIONED
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(config, algorithm, CONDITIONED, seed, Path(tmp), action_space)
+        try:
+            if prior is not None:
+                trainer.set_prior(prior)
+            started = time.perf_counter()
+            if actors:
+                pool = trainer.actor_pool(actors, None)
+                pool.pids()   # answers once every actor is made (its simulation too)
+                source = trainer.episodes_on_actors(episodes, pool)
+            else:
+                source = trainer.episodes_here(episodes)
+            if barrier is not None:
+                barrier.wait(timeout=600)
+            ready = time.perf_counter()
+            for _ in source:
+                pass
+            finished = time.perf_counter()
+        finally:
+            trainer.env.close()
+    return Collected(trainer.state.decisions, trainer.state.updates, finished - ready, ready - started)
+
+
+def plain_processes(config: ProjectConfig, algorithm: str, action_space: str, seed: int, episodes: int, prior,
+                    count: int) -> Collected:
+    """``count`` processes without Ray (``timed_episodes`` in this process's way), each on its own
+    seed and the ``count``-th part of ``episodes`` (rounded up), started together: their decisions
+    over the longest one's seconds. Two libsumo simulations in two processes: the most two actors
+    can collect on this machine."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    context = multiprocessing.get_context('spawn')
+    each = -(-episodes // count)
+    with context.Manager() as manager, ProcessPoolExecutor(count, mp_context=context) as pool:
+        barrier = manager.Barrier(count)
+        runs = [pool.submit(timed_episodes, config, algorithm, action_space, seed + index, each, prior, barrier=barrier)
+                for index in range(count)]
+        done = [run.result() for run in runs]
+    return Collected(sum(run.decisions for run in done), 0, max(run.seconds for run in done))
+
+
+def actor_table(recipe: str, episodes: int, learning: dict[int, Collected], collecting: dict[int, Collected],
+                plain: dict[int, Collected]) -> str:
+    """One table, a row per number of actors: with learning, the start, the wall time to
+    ``episodes`` episodes, collected decisions/s and updates/s (over the episodes' seconds); with
+    updates off (``collecting``, actors >= 1), the decisions/s and their ratio to 1 actor's, and
+    as many plain processes' (``plain``) and their ratio to one's; then the 1 -> 2 line."""
+    lines = [f'learning with actors: {recipe}; {episodes} training episode(s) per run (no validation, '
+             f'no checkpoints), a local Ray on loopback, torch threads: 1',
+             f'{"actors":>6} {"start [s]":>9} {"wall [s]":>8} {"decisions/s":>11} {"updates/s":>9} | '
+             f'{"updates off: decisions/s":>24} {"x 1 actor":>9} | {"plain processes: decisions/s":>28} '
+             f'{"x 1 process":>11}']
+
+    def decisions_per_s(figures: dict[int, Collected], count: int) -> float:
+        return figures[count].per_second(figures[count].decisions)
+
+    def ratio(figures: dict[int, Collected], count: int) -> str:
+        if count not in figures or 1 not in figures:
+            return '-'
+        return f'{decisions_per_s(figures, count) / decisions_per_s(figures, 1):.2f}x'
+
+    def rate(figures: dict[int, Collected], count: int) -> str:
+        return f'{decisions_per_s(figures, count):.0f}' if count in figures else '-'
+
+    for count, run in learning.items():
+        lines.append(f'{count:>6} {run.start:>9.1f} {run.wall:>8.1f} {rate(learning, count):>11} '
+                     f'{run.per_second(run.updates):>9.1f} | {rate(collecting, count):>24} {ratio(collecting, count):>9} | '
+                     f'{rate(plain, count):>28} {ratio(plain, count):>11}')
+    lines.append('start: Ray and the actors up (in the wall time); decisions/s, updates/s: over the episodes alone; '
+                 'plain processes: that many processes without Ray, each its share of the episodes, started together')
+    if 2 in collecting and 1 in collecting:
+        lines.append(f'scaling from 1 to 2 actors, updates off: {ratio(collecting, 2)}; the ceiling, two plain '
+                     f'processes over one: {ratio(plain, 2)} (target >= 1.6x)')
+    return '\n'.join(lines)
 
 
 def bench_sweep(config_dir: Path | None, episodes: int, seed: int) -> str:

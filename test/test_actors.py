@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -113,6 +114,19 @@ def test_train_with_actors_joins_a_running_cluster_and_its_checkpoint_learnt(ray
     assert any(not torch.equal(last[key], initial[key]) for key in initial), 'the weights moved'
 
 
+def test_without_an_address_a_run_starts_a_ray_of_its_own_beside_a_running_cluster(ray_cluster):
+    """`train --actors N` (and `compare`, `bench learning --actors`) without --address: a local
+    Ray of N CPUs, not the cluster `ray start` left on this machine."""
+    import exit_decision
+    from exit_decision.learning.actors import start_ray
+    start_ray(None, 1, Path(exit_decision.__file__).resolve().parent.parent)
+    import ray   # after start_ray: it sets what Ray reads at import (loopback only)
+    try:
+        assert ray.cluster_resources().get('CPU') == 1, ray.cluster_resources()
+    finally:
+        ray.shutdown()
+
+
 def test_the_comparison_sweep_joins_a_running_cluster(ray_cluster, tmp_path):
     from exit_decision.experiments.compare import Job, SweepResult, run_on_ray
 
@@ -123,3 +137,42 @@ def test_the_comparison_sweep_joins_a_running_cluster(ray_cluster, tmp_path):
     got = []
     result = run_on_ray([Job('where', where, (), got.append)], SweepResult(cells=1), ray_cluster, None, 0, False)
     assert result.done == 1 and got and got[0] != os.getpid(), 'the task ran in a worker of the cluster'
+
+
+def table_rows(table: str) -> dict[str, list[str]]:
+    """``actor_table``'s rows by their number of actors, each as its figures (the '|' dropped)."""
+    return {words[0]: [word for word in words if word != '|'] for words in map(str.split, table.splitlines())
+            if words and words[0].isdigit()}
+
+
+def test_the_actor_table_gives_each_count_its_rates_and_the_scaling_against_its_ceiling():
+    from exit_decision.benchmarks import Collected, actor_table
+
+    learning = {0: Collected(1000, 2000, 10.0), 1: Collected(1000, 1000, 8.0, start=5.0),
+                2: Collected(1000, 1000, 5.0, start=6.0)}
+    collecting = {1: Collected(1000, 0, 2.0), 2: Collected(1000, 0, 1.25)}
+    plain = {1: Collected(1000, 0, 1.8), 2: Collected(1000, 0, 1.0)}
+    table = actor_table('the recipe', 50, learning, collecting, plain)
+    rows = table_rows(table)
+    assert rows['0'] == ['0', '0.0', '10.0', '100', '200.0', '-', '-', '-', '-'], 'in this process: nothing to scale'
+    assert rows['1'] == ['1', '5.0', '13.0', '125', '125.0', '500', '1.00x', '556', '1.00x'], 'wall = start + episodes'
+    assert rows['2'] == ['2', '6.0', '11.0', '200', '200.0', '800', '1.60x', '1000', '1.80x']
+    assert 'scaling from 1 to 2 actors, updates off: 1.60x; the ceiling, two plain processes over one: 1.80x' in table
+    without_one = table_rows(actor_table('the recipe', 50, {2: learning[2]}, {2: collecting[2]}, {2: plain[2]}))
+    assert without_one['2'][-4:] == ['800', '-', '1000', '-'], 'no ratio without 1 actor to compare with'
+
+
+def test_bench_learning_with_actors_trains_and_collects_with_each_count_in_one_table(tmp_path, capsys):
+    """The tiny form of `exit-decision bench learning --actors 0 --actors 1 --actors 2`."""
+    from exit_decision.cli import main
+    config_dir = small_config_dir(tmp_path / 'config')
+    override = tmp_path / 'warmup.yaml'
+    override.write_text('training: {warmup_decisions: 5}\n')   # updates from the first episode on
+    assert main(['bench', 'learning', '--config-dir', str(config_dir), '--override', str(override),
+                 '--actors', '1', '--actors', '0', '--training-episodes', '1']) == 0
+    out = capsys.readouterr().out
+    rows = table_rows(out)
+    assert list(rows) == ['0', '1'], f'one row per count, in order: {out}'
+    assert float(rows['0'][4]) > 0 and float(rows['1'][4]) > 0, 'the learner updated, here and from the actor'
+    assert float(rows['1'][1]) > 0 and rows['1'][6] == rows['1'][8] == '1.00x', 'start timed; 1 actor and 1 process'
+    assert float(rows['1'][5]) > 0 and float(rows['1'][7]) > 0, 'collected with updates off, by the actor and a process'

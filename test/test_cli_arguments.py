@@ -25,7 +25,8 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
         ('exit_decision.experiments.constant_options', 'write_table'),
         ('exit_decision.evaluation.plots', 'make_all'), ('exit_decision.experiments.compare', 'run_sweep'),
         ('exit_decision.experiments.compare', 'run_trainings'), ('exit_decision.benchmarks', 'bench_simulation'),
-        ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_sweep'),
+        ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_actors'),
+        ('exit_decision.benchmarks', 'bench_sweep'),
         ('exit_decision.ros.stack.bench', 'bench_ros'), ('exit_decision.learning.anchoring', 'tune_anchor')]
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
@@ -80,6 +81,7 @@ BAD = [
     ['bench', '--policy-dir', 'MISSING'], ['bench', '--thread-priority', '-1'],
     ['bench', '--phase-seconds', '0'], ['bench', '--pairs', '0'], ['bench', '--kind', 'huge'],
     ['bench', '--flooders', '0'], ['bench', '--huge-mb-per-s', '-1'], ['bench', 'flood', '--topic', '/nope'],
+    ['bench', '--actors', '-1'], ['bench', '--actors', 'two'], ['bench', '--training-episodes', '0'],
 ]
 
 

@@ -24,7 +24,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         check_thread_priority(args.thread_priority)
     if args.what in ('sim', 'all'):
         print(bench_simulation(config, args.episodes, args.seed))
-    if args.what in ('learning', 'all'):
+    if args.what in ('learning', 'all') and args.actors:
+        from exit_decision.benchmarks import bench_actors
+        print(bench_actors(args.config_dir, args.scenario_override, args.override, args.seed, args.actors,
+                           args.training_episodes))
+    elif args.what in ('learning', 'all'):
         print(bench_learning(args.config_dir, args.scenario_override, args.override, args.seed, args.episodes))
     if args.what in ('sweep', 'all'):
         from exit_decision.benchmarks import bench_sweep
@@ -57,6 +61,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     bench.add_argument('--policy-dir', type=existing('dir'), default=None, help='ros: directory of the policies (default: the shipped policies/)')
     bench.add_argument('--episodes', type=COUNT, default=2, help='episodes per measurement (sweep: seeds per cell)')
     bench.add_argument('--seed', type=SEED, default=0, help='the first seed')
+    bench.add_argument('--actors', type=number(int, 0), action='append', default=None,
+                       help='learning: instead of the update breakdown, train the shipped recipe with this many '
+                            'Ray actors (0: in this process) and, with updates off, collect with them and with as '
+                            'many plain processes (repeatable: one table; default: none)')
+    bench.add_argument('--training-episodes', type=COUNT, default=50,
+                       help='learning with --actors: training episodes per run')
     bench.add_argument('--phase-seconds', type=number(float, 0.0, inclusive=False), default=3.0,
                        help='flood: seconds of each flood, and of each phase without one after it')
     bench.add_argument('--pairs', type=COUNT, default=1, help='flood: pairs of phases (flood, none) per topic and kind')

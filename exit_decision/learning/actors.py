@@ -68,7 +68,9 @@ def start_ray(address: str | None, workers: int, package_root: Path) -> None:
     if address is None:
         # workers import this same copy of the package (a source tree before its install)
         path = os.pathsep.join(filter(None, [str(package_root), os.environ.get('PYTHONPATH', '')]))
-        ray.init(address=None, num_cpus=workers, include_dashboard=False, log_to_driver=False,
+        # 'local': a Ray of its own even when `ray start` left a cluster on this machine (None
+        # would join that one, and refuse num_cpus)
+        ray.init(address='local', num_cpus=workers, include_dashboard=False, log_to_driver=False,
                  _node_ip_address='127.0.0.1', runtime_env={'env_vars': {'PYTHONPATH': path}})
     else:
         ray.init(address=address, log_to_driver=False, **({'_node_ip_address': '127.0.0.1'} if loopback else {}))

@@ -34,6 +34,8 @@ import torch
 from tqdm import tqdm
 
 from exit_decision.config import ActionSpaceName, ProjectConfig
+from exit_decision.driving.prior import PriorTable
+from exit_decision.learning.actors import ActorPool
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.checkpoints import Checkpoints, TrainingState, run_description
 from exit_decision.learning.collecting import method_collector
@@ -193,7 +195,8 @@ class Trainer:
             bar = tqdm(total=steps or episodes, initial=self.state.decisions if steps else self.state.episode,
                        desc=f'train {self.algorithm}/{self.mode}', unit='step' if steps else 'ep',
                        disable=not progress)
-            source = self.episodes_on_actors(episodes, actors, address) if actors else self.episodes_here(episodes)
+            source = self.episodes_on_actors(episodes, self.actor_pool(actors, address)) if actors else \
+                self.episodes_here(episodes)
             first, started = (self.state.episode, self.state.decisions, self.state.updates), time.monotonic()
             for metrics in source:
                 bar.update(self.state.decisions - bar.n if steps else 1)
@@ -230,13 +233,18 @@ class Trainer:
             by_style = constant_option_episodes(self.env, seeds, desc='the prior' if progress else None)
         finally:
             self.env.sim.single_agent = single
-        prior = prior_of(self.env, by_style)
+        self.set_prior(prior_of(self.env, by_style))
+        return by_style
+
+    def set_prior(self, prior: PriorTable) -> None:
+        """Use ``prior``, measured already (``use_prior``; ``bench learning --actors`` measures it
+        once for all its runs): every checkpoint carries it, the episodes explore around it and the
+        targets bootstrap on it as the config says."""
         self.checkpoints.description['prior'] = prior.to_metadata()
         self.collector.prior = prior
         if self.training.bootstrap == 'prior':
             options = prior.option_indices(self.env.options)
             self.experience.prior_actions = lambda multipliers: options[prior.best_indices(multipliers)]
-        return by_style
 
     def record(self, validated: list[tuple[Path, dict]]) -> None:
         """Log finished validations; the best candidate so far becomes policy.pt."""
@@ -275,13 +283,16 @@ class Trainer:
         while not self.budget_spent(episodes):
             yield self.train_episode()
 
-    def episodes_on_actors(self, episodes: int, count: int, address: str | None) -> Iterator[dict[str, float]]:
-        """Training episodes on ``count`` Ray actors (``actors``) until the budget is spent; the
-        learner here learns from each as it finishes, ``updates_per_decision`` updates per
-        decision, and broadcasts its weights every ``actors.broadcast_every`` updates."""
-        from exit_decision.learning.actors import ActorPool
-        pool = ActorPool(self.config, self.algorithm, self.validation_modes[0], self.action_space,
+    def actor_pool(self, count: int, address: str | None) -> ActorPool:
+        """``count`` Ray actors (``actors``) that collect this run's episodes, on the cluster at
+        ``address`` (None: a local Ray); they play with the prior when it was measured before."""
+        return ActorPool(self.config, self.algorithm, self.validation_modes[0], self.action_space,
                          self.shape.to_dict(), self.seed, count, address, self.checkpoints.description.get('prior'))
+
+    def episodes_on_actors(self, episodes: int, pool: ActorPool) -> Iterator[dict[str, float]]:
+        """Training episodes on the actors of ``pool`` (``actor_pool``; closed at the end) until the
+        budget is spent; the learner here learns from each as it finishes, ``updates_per_decision``
+        updates per decision, and broadcasts its weights every ``actors.broadcast_every`` updates."""
         broadcast_every = self.training.actors.broadcast_every
         dispatched = [self.state.episode]
 
