@@ -48,3 +48,23 @@ def test_members_that_do_not_fit_together_are_refused_naming_the_file(tmp_path):
     grid = POLICIES / 'mdgqn_conditioned' / 'policy.pt'
     with pytest.raises(PolicyError, match='mdgqn_conditioned'):
         anchor_policy([MEMBER, grid], Anchor(0.0, 0.0), tmp_path / 'p.pt')
+
+
+def test_the_anchor_command_validates_every_point_and_keeps_the_best(tmp_path, capsys):
+    import json
+
+    from exit_decision.cli import main
+    from exit_decision.tables import read_rows
+
+    out = tmp_path / 'anchored'
+    assert main(['anchor', '--policy', str(MEMBER), '--policy', str(MEMBER), '--kappa', '0', '--margin', '0',
+                 '--margin', '1e6', '--episodes', '1', '--out', str(out)]) == 0
+    rows = read_rows(out / 'anchor.csv')
+    assert len(rows) == 8 and {row['mode'] for row in rows} == {'AGGI', 'AGGP', 'CONI', 'CONP'}
+    assert all(float(row['departures']) == 0.0 for row in rows if float(row['margin']) == 1e6)
+    chosen = json.loads((out / 'anchor.json').read_text())
+    assert chosen['command'].startswith('exit-decision anchor') and chosen['validation_seeds'] == [900000]
+    best = max(rows, key=lambda row: float(row['score']))
+    assert chosen['chosen'] == {'kappa': 0.0, 'margin': float(best['margin'])}
+    assert load_policy(out / 'policy.pt').metadata['anchor'] == chosen['chosen']
+    assert 'departures from the prior' in capsys.readouterr().out

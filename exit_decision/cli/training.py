@@ -52,9 +52,13 @@ def cmd_anchor(args: argparse.Namespace) -> int:
     if args.reward_variant:
         known('--reward-variant', args.reward_variant, config.reward)
         config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
-    policy, score = tune_anchor(config, args.policy, args.kappa or [0.0, 1.0, 2.0], args.margin or [0.0],
-                                args.episodes, args.out, args.jobs)
-    print(f'anchored policy: {policy} (validation score {score:.3f}); every point in {args.out / "anchor.csv"}')
+    chosen, score, per_mode = tune_anchor(config, args.policy, args.kappa or [0.0, 1.0, 2.0], args.margin or [0.0],
+                                          args.episodes, args.out, args.jobs, args.invocation)
+    print(f'anchored policy: {args.out / "policy.pt"}, kappa {chosen.kappa:g}, margin {chosen.margin:g} (validation '
+          f'score {score:.3f}); every point in {args.out / "anchor.csv"}')
+    for mode, row in per_mode.items():
+        print(f'  {mode}: return - the best fixed driver {row["gain"]:+.3f} [{row["gain_low"]:+.3f}, '
+              f'{row["gain_high"]:+.3f}], departures from the prior {row["departures"]:.1%}')
     return 0
 
 

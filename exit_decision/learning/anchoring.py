@@ -45,9 +45,10 @@ def anchor_policy(members: Sequence[Path], anchor: Anchor, out: Path) -> Path:
 
 
 def tune_anchor(config: ProjectConfig, members: Sequence[Path], kappas: Sequence[float], margins: Sequence[float],
-                episodes: int, out_dir: Path, jobs: int = 1) -> tuple[Path, float]:
+                episodes: int, out_dir: Path, jobs: int = 1, command: str = '') -> tuple[Anchor, float, dict]:
     """Every (kappa, margin) validated on ``episodes`` validation seeds in every validation mode;
-    the best, by the trainer's selection score, copied to ``out_dir/policy.pt``: (its path, its score)."""
+    the best, by the trainer's selection score, copied to ``out_dir/policy.pt``: (its point, its score,
+    its validation rows per mode); ``command``: what made them, for anchor.json."""
     out_dir.mkdir(parents=True, exist_ok=True)
     training = config.training
     task = ValidationTask(config, list(training.conditioning.validation_modes), validation_seeds(episodes), 'options')
@@ -67,6 +68,6 @@ def tune_anchor(config: ProjectConfig, members: Sequence[Path], kappas: Sequence
     best = max(range(len(points)), key=scores.__getitem__)
     shutil.copyfile(paths[best], out_dir / 'policy.pt')
     (out_dir / 'anchor.json').write_text(json.dumps(
-        {'members': [str(path) for path in members], 'kappas': list(kappas), 'margins': list(margins),
+        {'command': command, 'members': [str(path) for path in members], 'kappas': list(kappas), 'margins': list(margins),
          'validation_seeds': task.seeds, 'chosen': points[best].to_metadata(), 'score': scores[best]}, indent=2))
-    return out_dir / 'policy.pt', scores[best]
+    return points[best], scores[best], results[best]
