@@ -27,7 +27,8 @@ WORK = [('exit_decision.env', 'ExitDecisionEnv'), ('exit_decision.learning.train
         ('exit_decision.experiments.compare', 'run_trainings'), ('exit_decision.benchmarks', 'bench_simulation'),
         ('exit_decision.benchmarks', 'bench_learning'), ('exit_decision.benchmarks', 'bench_actors'),
         ('exit_decision.benchmarks', 'bench_sweep'),
-        ('exit_decision.ros.stack.bench', 'bench_ros'), ('exit_decision.learning.anchoring', 'tune_anchor')]
+        ('exit_decision.ros.stack.bench', 'bench_ros'), ('exit_decision.learning.anchoring', 'tune_anchor'),
+        ('exit_decision.evaluation.one_step', 'one_step_gains')]
 
 # the bad value is the last argument; MISSING: a path that does not exist, EXISTING: one that does
 BAD = [
@@ -42,6 +43,9 @@ BAD = [
     ['anchor', '--margin', 'x'], ['anchor', '--episodes', '0'], ['anchor', '--jobs', '0'],
     ['anchor', '--policy', A_POLICY, '--out', 'EXISTING', '--reward-variant', 'NOPE'],
     ['anchor', '--config-dir', 'MISSING'],
+    ['one-step-gains', '--policy', 'MISSING'], ['one-step-gains', '--policy', A_POLICY, '--score-mode', 'NOPE'],
+    ['one-step-gains', '--episodes', '0'], ['one-step-gains', '--seed', '-1'], ['one-step-gains', '--points', '0'],
+    ['one-step-gains', '--policy', A_POLICY, '--reward-variant', 'NOPE'], ['one-step-gains', '--config-dir', 'MISSING'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '0'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '-3'],
     ['evaluate', '--seed', '-1'], ['evaluate', '--policy', NOT_CHECKPOINT], ['evaluate', '--policy', 'MISSING'],
@@ -204,5 +208,5 @@ def test_an_old_spelling_notes_its_new_one_on_stderr_after_the_command(monkeypat
     monkeypatch.chdir(REPO)
     assert main(['plot', '--runs', 'policies/mdgqn_conditioned', 'policies/gqn_options_conditioned', '--out', 'runs/never']) == 0
     out, err = capsys.readouterr()
-    assert out == '2 runs\n'
+    assert out.startswith('2 runs\n')
     assert err == 'exit-decision plot: note: --runs is now --policy; the old spelling still works, for now\n'

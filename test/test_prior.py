@@ -143,3 +143,30 @@ def test_the_prior_driver_explores_around_its_option(tmp_path):
             'the options begun are the explored ones and, for the rest, the prior\'s'
     finally:
         env.close()
+
+
+def test_one_step_gains_pair_each_option_with_the_prior_on_the_same_seed(tmp_path):
+    """Is there anything to improve on the prior: the prior's own option, begun at the point, gains
+    exactly 0 (the pairing holds); every other allowed option there is measured once."""
+    from exit_decision.config import load_project
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import constant_option_episodes, prior_of
+    from exit_decision.evaluation.one_step import one_step_gains, summary
+    from ros_helpers import small_config_dir
+
+    config = load_project(small_config_dir(tmp_path / 'config'))
+    env = ExitDecisionEnv(config)
+    try:
+        table = prior_of(env, constant_option_episodes(env, [7]))
+        mode = ModeWeights(config).mode('AGGI')
+        rows = one_step_gains(env, table, mode, env.reward_fn.weights(config.mode('AGGI')), [7], 1,
+                              np.random.default_rng(0))
+    finally:
+        env.close()
+    control = [row for row in rows if row['prior']]
+    assert len(control) == 1 and control[0]['gain'] == 0.0
+    assert control[0]['style'] == table.best_style(mode.weights) and control[0]['lane_intent'] == 'route'
+    assert len(rows) > 2 and len({row['option'] for row in rows}) == len(rows), 'each allowed option once'
+    assert any(row['gain'] != 0.0 for row in rows if not row['prior']), 'a deviation changes the episode'
+    figures = summary(rows)
+    assert figures['points'] == 1 and figures['control'] == 0.0 and figures['deviations'] == len(rows) - 1

@@ -1,6 +1,6 @@
 """Commands that run the scenario and evaluate: ``run`` (episodes of the scenario, the episode
-metrics of ``exit_decision.episode_log``) and ``evaluate`` (policies and the reference drivers on
-fixed seeds)."""
+metrics of ``exit_decision.episode_log``), ``evaluate`` (policies and the reference drivers on
+fixed seeds) and ``one-step-gains`` (is there anything to improve on the prior?)."""
 from __future__ import annotations
 
 import argparse
@@ -110,8 +110,52 @@ EVALUATE_EXAMPLES = '''examples:
 '''
 
 
+def cmd_one_step_gains(args: argparse.Namespace) -> int:
+    """One-step gains over the prior a policy carries, per scoring mode (``evaluation.one_step``)."""
+    import numpy as np
+
+    from exit_decision.driving.prior import PriorTable
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.one_step import one_step_gains, summary
+    from exit_decision.model.modes import ModeWeights
+    from exit_decision.model.policy import load_policy
+    from exit_decision.tables import append_row
+
+    config = load_project(args.config_dir, args.scenario_override, args.override)
+    modes = args.score_mode or list(config.training.conditioning.validation_modes)
+    for mode in modes:
+        known('--score-mode', mode, config.mode)
+    if args.reward_variant:
+        known('--reward-variant', args.reward_variant, config.reward)
+        config = config.model_copy(update={'env': config.env.model_copy(update={'reward_variant': args.reward_variant})})
+    prior = load_policy(args.policy).prior
+    if prior is None:
+        raise UsageError(f'--policy {args.policy}: carries no prior (a policy over options trained since issue 39 does)')
+    table, env = PriorTable.from_metadata(prior), ExitDecisionEnv(config)
+    seeds, rng = [args.seed + i for i in range(args.episodes)], np.random.default_rng(args.seed)
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f'one-step gains over the prior of {args.policy} (reward variant {env.reward_variant}; seeds {seeds[0]}..'
+          f'{seeds[-1]}, {args.points} choice points each; rows in {args.out / "one_step_gains.csv"})')
+    try:
+        for mode in modes:
+            bound = ModeWeights(config).mode(mode)
+            rows = one_step_gains(env, table, bound, env.reward_fn.weights(config.mode(mode)), seeds, args.points, rng,
+                                  desc=mode)
+            for row in rows:
+                append_row(args.out / 'one_step_gains.csv', {'mode': mode, **row})
+            s = summary(rows)
+            print(f'  {mode} (prior: {table.best_style(bound.weights)}): '
+                  f'{s["points"]} points, {s["deviations"]} deviations, mean gain {s["mean_gain"]:+.4f}, '
+                  f'{s["share_gaining"]:.0%} gain; best option per point {s["best_mean"]:+.4f} (median '
+                  f'{s["best_median"]:+.4f}), above +0.05 at {s["best_above_0.05"]:.0%} of the points; the '
+                  f'control (the prior\'s own option) within {s["control"]:.1e}')
+    finally:
+        env.close()
+    return 0
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
-    """Adds ``run`` and ``evaluate``."""
+    """Adds ``run``, ``evaluate`` and ``one-step-gains``."""
     run = commands.add_parser('run', help='run episodes of the scenario and print the metrics table')
     config_options(run)
     run.add_argument('--episodes', type=COUNT, default=1, help='number of episodes')
@@ -155,3 +199,20 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                                'and bird\'s-eye clip (GIF; MP4 too where ffmpeg exists); 0: none; grid policies '
                                'and the drivers only')
     evaluate.set_defaults(func=cmd_evaluate)
+
+    gains = commands.add_parser(
+        'one-step-gains', help='how much one different option, once, gains over the prior a policy carries: is there '
+                               'anything to improve on (docs/design.md, "The prior over options")')
+    config_options(gains)
+    gains.add_argument('--policy', type=policy, required=True,
+                       help='a policy over options carrying its prior: a directory name under policies/ or the path of '
+                            'a policy directory or of a checkpoint')
+    gains.add_argument('--score-mode', action='append', default=None,
+                       help='a mode to measure under (repeatable; default: the validation modes)')
+    gains.add_argument('--episodes', type=COUNT, default=10, help='seeds')
+    gains.add_argument('--seed', type=SEED, default=910_000, help='first seed (not a test or training seed)')
+    gains.add_argument('--points', type=COUNT, default=3, help='random choice points per seed')
+    gains.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml\'s)')
+    gains.add_argument('--out', type=Path, default=Path('runs/one_step_gains'),
+                       help='where one_step_gains.csv goes (rows appended)')
+    gains.set_defaults(func=cmd_one_step_gains)
