@@ -10,6 +10,7 @@ is optimal over the options (the policy-improvement theorem): no learner over th
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import count
 
 import numpy as np
 from tqdm import tqdm
@@ -35,7 +36,7 @@ def one_step_gains(env: ExitDecisionEnv, table: PriorTable, mode: Mode, weights:
         base = scalar(env.episode_log.reward_vector, weights)
         for point in sorted(rng.choice(len(masks), size=min(points, len(masks)), replace=False).tolist()):
             for option in np.flatnonzero(masks[point]).tolist():
-                begun = iter(range(len(masks) + 1))
+                begun = count()   # the choices of this episode, in order (after the point it may make more)
                 driver = PriorDriver(table, space, mode,
                                      explore=lambda mask, p=point, o=option: o if next(begun) == p else None)
                 play_episode(env, driver, seed)
