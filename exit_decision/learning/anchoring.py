@@ -3,8 +3,8 @@ one checkpoint with their prior, and the (kappa, margin) chosen on the validatio
 
 ``anchor_policy`` writes one checkpoint; ``tune_anchor`` writes one per point of a (kappa, margin)
 grid, validates each against the best fixed driver of every mode on the validation seeds as the
-trainer validates its candidates (``validation``), logs ``anchor.csv`` and keeps the best by the
-same selection score as ``policy.pt``.
+trainer validates its candidates (``validation``; the constant options are played once, here, not
+in every worker), logs ``anchor.csv`` and keeps the best by the same selection score as ``policy.pt``.
 """
 from __future__ import annotations
 
@@ -19,7 +19,9 @@ from tqdm import tqdm
 
 from exit_decision.config import ProjectConfig
 from exit_decision.driving.anchored import Anchor
+from exit_decision.env import ExitDecisionEnv
 from exit_decision.errors import PolicyError
+from exit_decision.evaluation.evaluate import constant_option_episodes
 from exit_decision.learning.checkpoints import save_policy
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint, validation_seeds
 from exit_decision.model.policy import load_policy
@@ -51,7 +53,13 @@ def tune_anchor(config: ProjectConfig, members: Sequence[Path], kappas: Sequence
     its validation rows per mode); ``command``: what made them, for anchor.json."""
     out_dir.mkdir(parents=True, exist_ok=True)
     training = config.training
-    task = ValidationTask(config, list(training.conditioning.validation_modes), validation_seeds(episodes), 'options')
+    seeds = validation_seeds(episodes)
+    env = ExitDecisionEnv(config)   # the constant options played once here, not in every worker
+    try:
+        styles = constant_option_episodes(env, seeds, desc='the constant options')
+    finally:
+        env.close()
+    task = ValidationTask(config, list(training.conditioning.validation_modes), seeds, 'options', styles)
     points = [Anchor(kappa, margin) for kappa in kappas for margin in margins]
     paths = [anchor_policy(members, point, out_dir / 'candidates' / f'kappa{point.kappa:g}_margin{point.margin:g}.pt')
              for point in points]
