@@ -61,12 +61,12 @@ class AnchoredSource:
         self.shield, self.planner = controller.shield, controller.planner
         self.anchor = Anchor.from_metadata(policy.metadata['anchor'])
         self.table = PriorTable.from_metadata(policy.prior)
-        self.option_of_style = dict(zip(self.table.vectors, self.table.option_indices(space).tolist()))
+        self.space = space
         self.prior_option = -1
 
     def network_weights(self, mode: Mode) -> np.ndarray | None:
         weights = self.controller.network_weights(mode)
-        self.prior_option = self.option_of_style[self.table.best_style(mode.weights)]
+        self.prior_option = self.table.best_option(self.space, mode.weights)
         return weights
 
     def q_values(self, graph: TrafficGraph, snapshot: TrafficSnapshot, network_weights: np.ndarray | None) -> np.ndarray:

@@ -45,6 +45,10 @@ class PriorTable:
         """(styles,) each style's constant option (``route``) in ``space``."""
         return np.array([space.index('route', style) for style in self.vectors], dtype=np.int64)
 
+    def best_option(self, space: OptionSpace, weights: np.ndarray) -> int:
+        """The prior's option in ``space`` at ``weights``: the best style on the route's lane plan."""
+        return space.index('route', self.best_style(weights))
+
     def best_style(self, weights: np.ndarray) -> str:
         """The style of highest mean return at ``weights`` (the first on a tie, in table order)."""
         returns = self.returns(weights)
@@ -98,5 +102,5 @@ class PriorDriver(OptionDriver):
 
     def set_mode(self, mode: Mode) -> None:
         self.style = self.table.best_style(mode.weights)
-        self._index = self.space.index('route', self.style)
+        self._index = self.table.best_option(self.space, mode.weights)
         self.reset()

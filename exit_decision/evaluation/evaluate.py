@@ -114,7 +114,7 @@ def prior_option(policy, env: ExitDecisionEnv, mode) -> int | None:
     if policy.action_space != 'options' or policy.prior is None:
         return None
     table = PriorTable.from_metadata(policy.prior)
-    return OptionSpace(env.config, env.shield, env.planner).index('route', table.best_style(mode.weights))
+    return table.best_option(OptionSpace(env.config, env.shield, env.planner), mode.weights)
 
 
 def evaluate_policy(env: ExitDecisionEnv, path: Path | str, modes: Sequence[str], seeds: list[int],

@@ -28,7 +28,7 @@ def one_step_gains(env: ExitDecisionEnv, table: PriorTable, mode: Mode, weights:
     """Per seed, choice point and allowed option: the return of the episode in which that option
     is begun at that point, minus the prior's (``weights``: the scoring mode's multipliers)."""
     space = OptionSpace(env.config, env.shield, env.planner)
-    prior = space.index('route', table.best_style(mode.weights))
+    prior = table.best_option(space, mode.weights)
     rows = []
     for seed in tqdm(seeds, desc=desc, unit='seed', disable=desc is None):
         masks: list[np.ndarray] = []

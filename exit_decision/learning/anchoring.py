@@ -24,14 +24,14 @@ from exit_decision.errors import PolicyError
 from exit_decision.evaluation.evaluate import constant_option_episodes
 from exit_decision.learning.checkpoints import save_policy
 from exit_decision.learning.validation import ValidationTask, selection_score, validate_checkpoint, validation_seeds
-from exit_decision.model.policy import load_policy
+from exit_decision.model.policy import GraphPolicy, load_policy
 from exit_decision.tables import append_row
 
 
-def anchor_policy(members: Sequence[Path], anchor: Anchor, out: Path) -> Path:
+def anchor_policy(members: Sequence[Path | GraphPolicy], anchor: Anchor, out: Path) -> Path:
     """Write the anchored policy of ``members`` (policies over options of one shape, conditioned,
-    carrying the same prior) at ``out``; PolicyError naming the member that does not fit."""
-    policies = [load_policy(path) for path in members]
+    carrying the same prior; paths or loaded) at ``out``; PolicyError naming the member that does not fit."""
+    policies = [member if isinstance(member, GraphPolicy) else load_policy(member) for member in members]
     first = policies[0]
     for policy in policies:
         if policy.action_space != 'options' or not policy.conditioned or policy.prior is None:
@@ -61,7 +61,8 @@ def tune_anchor(config: ProjectConfig, members: Sequence[Path], kappas: Sequence
         env.close()
     task = ValidationTask(config, list(training.conditioning.validation_modes), seeds, 'options', styles)
     points = [Anchor(kappa, margin) for kappa in kappas for margin in margins]
-    paths = [anchor_policy(members, point, out_dir / 'candidates' / f'kappa{point.kappa:g}_margin{point.margin:g}.pt')
+    loaded = [load_policy(path) for path in members]   # read once, written once per point
+    paths = [anchor_policy(loaded, point, out_dir / 'candidates' / f'kappa{point.kappa:g}_margin{point.margin:g}.pt')
              for point in points]
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
         results = list(tqdm(pool.map(validate_checkpoint, [task] * len(paths), paths), total=len(paths),
