@@ -76,6 +76,20 @@ def test_training_resumes_from_its_last_state(config_dir, tmp_path):
         Trainer(config, 'mdgqn', 'CONP', 0, tmp_path / 'other').checkpoints.load_state(tmp_path / 'run' / 'last.pt')
 
 
+def test_a_resumed_run_validates_the_candidates_its_stop_left_unvalidated(config_dir, tmp_path):
+    config = load_project(config_dir, overrides=[TINY])
+    Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=2, progress=False)
+    log = tmp_path / 'run' / 'validation.csv'
+    lines = log.read_text().splitlines()
+    kept = [lines[0]] + [line for line in lines[1:] if line.startswith('0,')]
+    log.write_text('\n'.join(kept) + '\n')   # stopped while the episode-2 candidate was being validated
+    assert [int(r['episode']) for r in rows(log)] == [0]
+    Trainer(config, 'gqn', 'CONP', 0, tmp_path / 'run').run(episodes=2, resume=tmp_path / 'run' / 'last.pt',
+                                                          progress=False)
+    assert [int(r['episode']) for r in rows(log)] == [0, 2], 'validated once, no episode trained again'
+    assert len(rows(tmp_path / 'run' / 'training.csv')) == 2
+
+
 def test_a_budget_of_environment_steps_ends_training_and_runs_the_schedules_in_steps(config_dir, tmp_path):
     steps = 150
     budget = {'training': {'environment_steps': steps, 'exploration': {'epsilon_decay_steps': steps},

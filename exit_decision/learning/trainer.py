@@ -40,7 +40,8 @@ from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.checkpoints import Checkpoints, TrainingState, run_description
 from exit_decision.learning.collecting import method_collector
 from exit_decision.learning.sampling import Experience, WeightSampler
-from exit_decision.learning.validation import ValidationTask, Validator, record_validation, validation_seeds
+from exit_decision.learning.validation import (ValidationTask, Validator, record_validation, unvalidated_candidates,
+                                               validated_scores, validation_seeds)
 from exit_decision.model.modes import Mode, ModeWeights
 from exit_decision.model.names import CONDITIONED
 from exit_decision.model.networks import NetworkShape
@@ -172,6 +173,8 @@ class Trainer:
                 self.experience.demos.add(transition)
         if resume is not None:
             self.state = self.checkpoints.load_state(resume)
+            # validations recorded after last.pt was written count too (policy.pt may hold a later one)
+            self.state.best_score = max([self.state.best_score, *validated_scores(self.out_dir).values()])
         elif init is not None:
             self.checkpoints.load_network(init)
         clock['demonstrations'] = time.monotonic()
@@ -191,6 +194,8 @@ class Trainer:
         with Validator(task, validation.parallel, self.env) as validator:
             if self.state.episode == 0:
                 validator.submit(self.checkpoints.save_candidate(self.state))   # the pre-trained policy too
+            for path in unvalidated_candidates(self.out_dir) if resume is not None else ():
+                validator.submit(path)   # saved by the run resumed, which stopped before validating them
             steps = self.training.environment_steps
             bar = tqdm(total=steps or episodes, initial=self.state.decisions if steps else self.state.episode,
                        desc=f'train {self.algorithm}/{self.mode}', unit='step' if steps else 'ep',

@@ -12,6 +12,7 @@ cores work.
 """
 from __future__ import annotations
 
+import csv
 import multiprocessing
 import shutil
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -124,13 +125,34 @@ def record_validation(out_dir: Path, path: Path, per_mode: dict[str, dict[str, f
     """Log the validation of the candidate at ``path`` in validation.csv and keep it as
     policy.pt when its score beats ``best_score``; returns the best score."""
     score = selection_score(per_mode, settings.min_exit_rate, settings.max_cav_collision_rate)
-    episode = int(path.stem.split('_')[1])
+    episode = candidate_episode(path)
     for mode, row in per_mode.items():
         append_row(out_dir / 'validation.csv', {'episode': episode, 'mode': mode, **row, 'score': score})
     if score > best_score:
         shutil.copyfile(path, out_dir / 'policy.pt')
         return score
     return best_score
+
+
+def candidate_episode(path: Path) -> int:
+    """The training episode a candidate was saved after (candidates/episode_<n>.pt)."""
+    return int(path.stem.split('_')[1])
+
+
+def validated_scores(out_dir: Path) -> dict[int, float]:
+    """Per candidate episode in the run's validation.csv, its selection score."""
+    log = out_dir / 'validation.csv'
+    if not log.exists():
+        return {}
+    with open(log, newline='') as stream:
+        return {int(row['episode']): float(row['score']) for row in csv.DictReader(stream)}
+
+
+def unvalidated_candidates(out_dir: Path) -> list[Path]:
+    """The run's candidates without a row in validation.csv, oldest first: those a stopped run
+    saved but did not validate (its validation process ends with it); a resumed run validates them."""
+    done = validated_scores(out_dir)
+    return [path for path in sorted((out_dir / 'candidates').glob('episode_*.pt')) if candidate_episode(path) not in done]
 
 
 class Validator:
