@@ -43,7 +43,7 @@ class GraphQAgent:
         self.settings = settings
         self.online = GraphQNetwork(shape)
         self.target = copy.deepcopy(self.online).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=settings.learning_rate)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=settings.learning_rate, fused=True)   # one kernel
 
     def set_learning_rate(self, learning_rate: float) -> None:
         for group in self.optimizer.param_groups:
@@ -51,9 +51,8 @@ class GraphQAgent:
 
     def soft_update(self) -> None:
         tau = self.settings.tau
-        with torch.no_grad():
-            for target, online in zip(self.target.parameters(), self.online.parameters()):
-                target.mul_(1.0 - tau).add_(online, alpha=tau)
+        with torch.no_grad():   # target <- (1 - tau) target + tau online, every tensor in one call
+            torch._foreach_lerp_(list(self.target.parameters()), list(self.online.parameters()), tau)
 
     @staticmethod
     def masked_argmax(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -168,10 +168,44 @@ class GraphQNetwork(nn.Module):
 
     def cav_q_values(self, features: torch.Tensor, adjacency: torch.Tensor, rows: torch.Tensor,
                      weights: torch.Tensor | None = None) -> torch.Tensor:
-        """Q values (R, A) of selected rows only, ``rows`` (R, 2) = (batch index, row): the head
-        runs on those rows only."""
-        embedded = self.embed(features, adjacency, weights)
-        return self.q_of(embedded[rows[:, 0], rows[:, 1]])
+        """Q values (R, A) of selected rows only, ``rows`` (R, 2) = (batch index, row), for
+        learning: ``forward``'s values on those rows (equal up to rounding) without its work on
+        rows nothing depends on. The encoder runs on the vehicles present (an edge, or selected)
+        only, a quarter of a batch's padded rows; the weights enter its first layer as their own
+        term, once per graph, not copied to every row; the GCN aggregates into the selected rows
+        only (a sum over their edges); the head runs on them only."""
+        self.check_weights(weights)
+        if not self.shape.encoder:   # the rows' inputs (with the weights) are the code
+            return self.q_of(self.embed(features, adjacency, weights)[rows[:, 0], rows[:, 1]])
+        b, r = rows[:, 0], rows[:, 1]
+        adjacency = adjacency.to(features.dtype)
+        degree = adjacency.sum(-1)
+        present = degree > 0
+        present[b, r] = True
+        present_b, present_n = present.nonzero(as_tuple=True)
+        position = torch.full(present.shape, -1, dtype=torch.long)
+        position[present_b, present_n] = torch.arange(len(present_b))
+        inputs = features[present_b, present_n]
+        if self.shape.adjacency_input:
+            inputs = torch.cat([inputs, adjacency[present_b, present_n]], dim=-1)
+        first, *rest = self.encoder
+        code = functional.linear(inputs, first.weight[:, :inputs.shape[-1]], first.bias)
+        if self.conditioned:
+            weights = weights.to(code.dtype)
+            code = code + functional.linear(weights, first.weight[:, inputs.shape[-1]:])[present_b]
+        for layer in rest:
+            code = layer(code)
+        parts = [code[position[b, r]]]
+        if self.shape.gcn:
+            inverse_sqrt = inverse_sqrt_degree(degree)
+            normalized_rows = inverse_sqrt[b, r, None] * adjacency[b, r] * inverse_sqrt[b]   # (R, N)
+            edge, neighbour = normalized_rows.nonzero(as_tuple=True)   # (selected row, neighbour) pairs
+            messages = normalized_rows[edge, neighbour, None] * self.gcn.linear(code)[position[b[edge], neighbour]]
+            aggregated = torch.zeros(len(rows), self.shape.gcn, dtype=code.dtype).index_add(0, edge, messages)
+            parts.append(torch.relu(aggregated))
+        if self.conditioned:
+            parts.append(weights[b])
+        return self.q_of(torch.cat(parts, dim=-1))
 
 
 class OneGraphForward:
