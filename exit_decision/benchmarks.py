@@ -151,6 +151,8 @@ def _update_parts(trainer, count: int = 100) -> dict[str, float]:
     import torch
     from torch import nn
 
+    from exit_decision.model.networks import SelectedRows
+
     agent = trainer.agent
     parts = dict.fromkeys(('sample', 'forward', 'targets', 'backward', 'step'), 0.0)
     for _ in range(count):
@@ -159,7 +161,7 @@ def _update_parts(trainer, count: int = 100) -> dict[str, float]:
         batch = {key: torch.from_numpy(value) for key, value in sampled.arrays.items()}
         marks = [time.perf_counter()]
         rows = torch.nonzero(batch['actions'] >= 0)
-        q = agent.online.cav_q_values(batch['features'], batch['adjacency'], rows, batch.get('weights'))
+        q = agent.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows), batch.get('weights'))
         marks.append(time.perf_counter())
         with torch.no_grad():
             targets = agent.td_targets(batch, rows)

@@ -9,7 +9,7 @@ from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.replay import DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
-from exit_decision.model.networks import GraphQNetwork, NetworkShape, normalize_adjacency
+from exit_decision.model.networks import GraphQNetwork, NetworkShape, SelectedRows, normalize_adjacency
 from exit_decision.learning.checkpoints import save_policy
 from exit_decision.model.modes import Mode
 from exit_decision.model.policy import PolicyController, load_policy
@@ -35,7 +35,7 @@ def test_q_network_shapes_and_that_n_is_free():
         assert q.shape == (2, n, A)
     rows = torch.tensor([[0, 1], [1, 2]])
     features, adjacency = torch.rand(2, 3, 5), torch.ones(2, 3, 3)
-    torch.testing.assert_close(net.cav_q_values(features, adjacency, rows), net(features, adjacency)[rows[:, 0], rows[:, 1]])
+    torch.testing.assert_close(net.cav_q_values(features, SelectedRows.of(adjacency, rows)), net(features, adjacency)[rows[:, 0], rows[:, 1]])
 
 
 def _shapes() -> dict[str, dict]:
@@ -189,8 +189,8 @@ class FixedNet(torch.nn.Module):
         super().__init__()
         self.values = torch.tensor(values, dtype=torch.float32)
 
-    def cav_q_values(self, features, adjacency, rows, weights=None):
-        return self.values.expand(len(rows), A)
+    def cav_q_values(self, features, selected, weights=None):
+        return self.values.expand(len(selected.rows), A)
 
 
 def agent_with(double, online_values, target_values):
@@ -276,7 +276,7 @@ def test_a_conditioned_network_answers_per_weight_vector():
     conservative = torch.tensor([[0.2, 0.2, 0.25, 0.35, 0.4, 0.6]] * 2)
     assert not torch.allclose(net(features, adjacency, aggressive), net(features, adjacency, conservative))
     rows = torch.tensor([[0, 1], [1, 2]])
-    torch.testing.assert_close(net.cav_q_values(features, adjacency, rows, aggressive),
+    torch.testing.assert_close(net.cav_q_values(features, SelectedRows.of(adjacency, rows), aggressive),
                                net(features, adjacency, aggressive)[rows[:, 0], rows[:, 1]])
     with pytest.raises(ValueError, match='needs the mode weights'):
         net(features, adjacency)

@@ -23,11 +23,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
     for run in args.policy or []:
         if (run / 'validation.csv').exists():
             print(f'{run}: the validation gain\'s slope over the last third of training, per 100 episodes [95%] '
-                  f'(flattened: >= {MIN_LAST_THIRD_VALIDATIONS} validations there and the interval reaches 0)')
+                  f'(flattened: >= {MIN_LAST_THIRD_VALIDATIONS} validations there and the interval reaches 0 or below; '
+                  f'falling: all of it below 0)')
             for mode, fit in last_third_slopes(read_rows(run / 'validation.csv')).items():
                 print(f'  {mode}: {100 * fit["slope"]:+.3f} [{100 * fit["low"]:+.3f}, {100 * fit["high"]:+.3f}] from '
                       f'episode {fit["from_episode"]}, {fit["validations"]} validations: '
-                      f'{"flattened" if fit["flat"] else "not flattened"}')
+                      f'{"not flattened" if not fit["flat"] else "flattened, falling" if fit["high"] < 0 else "flattened"}')
     return 0
 
 

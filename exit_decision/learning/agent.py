@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from exit_decision.model.networks import GraphQNetwork, NetworkShape
+from exit_decision.model.networks import GraphQNetwork, NetworkShape, SelectedRows
 
 @dataclass(frozen=True)
 class UpdateSettings:
@@ -63,11 +63,12 @@ class GraphQAgent:
         next_mask = batch['next_masks'][b, r]
         alive = batch['alive'][b, r] & next_mask.any(-1)
         weights = batch.get('weights')
-        target_q = self.target.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights)
+        next_rows = SelectedRows.of(batch['next_adjacency'], rows)
+        target_q = self.target.cav_q_values(batch['next_features'], next_rows, weights)
         if 'prior_actions' in batch:   # bootstrap on the prior's option (its route option: always allowed)
             best = batch['prior_actions'][b]
         else:
-            chooser = self.online.cav_q_values(batch['next_features'], batch['next_adjacency'], rows, weights) \
+            chooser = self.online.cav_q_values(batch['next_features'], next_rows, weights) \
                 if self.settings.double else target_q
             best = self.masked_argmax(chooser, next_mask)
         if 'continuing' in batch:   # options: a row whose option goes on is valued by that option
@@ -83,7 +84,7 @@ class GraphQAgent:
         rows = torch.nonzero(batch['actions'] >= 0)
         b, r = rows[:, 0], rows[:, 1]
         actions = batch['actions'][b, r]
-        q = self.online.cav_q_values(batch['features'], batch['adjacency'], rows, batch.get('weights'))
+        q = self.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows), batch.get('weights'))
         q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
         with torch.no_grad():
             targets = self.td_targets(batch, rows)

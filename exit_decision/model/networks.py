@@ -166,46 +166,72 @@ class GraphQNetwork(nn.Module):
             self._one_graph = OneGraphForward(self)
         return self._one_graph(features, adjacency, weights)
 
-    def cav_q_values(self, features: torch.Tensor, adjacency: torch.Tensor, rows: torch.Tensor,
+    def cav_q_values(self, features: torch.Tensor, selected: SelectedRows,
                      weights: torch.Tensor | None = None) -> torch.Tensor:
-        """Q values (R, A) of selected rows only, ``rows`` (R, 2) = (batch index, row), for
-        learning: ``forward``'s values on those rows (equal up to rounding) without its work on
-        rows nothing depends on. The encoder runs on the vehicles present (an edge, or selected)
-        only, a quarter of a batch's padded rows; the weights enter its first layer as their own
-        term, once per graph, not copied to every row; the GCN aggregates into the selected rows
-        only (a sum over their edges); the head runs on them only."""
+        """Q values (R, A) of ``selected``'s rows only, for learning: ``forward``'s values on
+        those rows (equal up to rounding) without its work on rows nothing depends on. The
+        encoder runs on the vehicles present only (a quarter of a batch's padded rows); the
+        weights enter its first layer as their own term, once per graph, not copied to every
+        row; the GCN aggregates into the selected rows only; the head runs on them only."""
         self.check_weights(weights)
+        graph_of_row = selected.rows[:, 0]
         if not self.shape.encoder:   # the rows' inputs (with the weights) are the code
-            return self.q_of(self.embed(features, adjacency, weights)[rows[:, 0], rows[:, 1]])
-        b, r = rows[:, 0], rows[:, 1]
-        adjacency = adjacency.to(features.dtype)
-        degree = adjacency.sum(-1)
-        present = degree > 0
-        present[b, r] = True
-        present_b, present_n = present.nonzero(as_tuple=True)
-        position = torch.full(present.shape, -1, dtype=torch.long)
-        position[present_b, present_n] = torch.arange(len(present_b))
-        inputs = features[present_b, present_n]
+            return self.q_of(self.embed(features, selected.adjacency, weights)[graph_of_row, selected.rows[:, 1]])
+        inputs = features[selected.present]
         if self.shape.adjacency_input:
-            inputs = torch.cat([inputs, adjacency[present_b, present_n]], dim=-1)
+            inputs = torch.cat([inputs, selected.adjacency[selected.present].to(inputs.dtype)], dim=-1)
         first, *rest = self.encoder
         code = functional.linear(inputs, first.weight[:, :inputs.shape[-1]], first.bias)
         if self.conditioned:
             weights = weights.to(code.dtype)
-            code = code + functional.linear(weights, first.weight[:, inputs.shape[-1]:])[present_b]
+            code = code + functional.linear(weights, first.weight[:, inputs.shape[-1]:]).index_select(
+                0, selected.present_graph)
         for layer in rest:
             code = layer(code)
-        parts = [code[position[b, r]]]
+        parts = [code.index_select(0, selected.place)]
         if self.shape.gcn:
-            inverse_sqrt = inverse_sqrt_degree(degree)
-            normalized_rows = inverse_sqrt[b, r, None] * adjacency[b, r] * inverse_sqrt[b]   # (R, N)
-            edge, neighbour = normalized_rows.nonzero(as_tuple=True)   # (selected row, neighbour) pairs
-            messages = normalized_rows[edge, neighbour, None] * self.gcn.linear(code)[position[b[edge], neighbour]]
-            aggregated = torch.zeros(len(rows), self.shape.gcn, dtype=code.dtype).index_add(0, edge, messages)
-            parts.append(torch.relu(aggregated))
+            parts.append(torch.relu(torch.sparse.mm(selected.aggregation.to(code.dtype), self.gcn.linear(code))))
         if self.conditioned:
-            parts.append(weights[b])
+            parts.append(weights.index_select(0, graph_of_row))
         return self.q_of(torch.cat(parts, dim=-1))
+
+
+@dataclass(frozen=True)
+class SelectedRows:
+    """Rows (R, 2) = (batch index, row) of a batch of graphs to value, with what
+    ``GraphQNetwork.cav_q_values`` needs of the graphs' structure: made once per batch and shared
+    by every network valuing the same rows (an update's target and online networks on the next
+    states)."""
+    rows: torch.Tensor
+    #: (B, N, N) as given
+    adjacency: torch.Tensor
+    #: (B, N) the rows the encoder runs on: a vehicle (an edge) or selected
+    present: torch.Tensor
+    #: (P,) the batch index of each present row, in ``present``'s order
+    present_graph: torch.Tensor
+    #: (R,) each selected row's place among the present rows
+    place: torch.Tensor
+    #: (R, P) sparse: the selected rows of D^-1/2 A D^-1/2, over the present rows
+    aggregation: torch.Tensor
+
+    @classmethod
+    def of(cls, adjacency: torch.Tensor, rows: torch.Tensor) -> SelectedRows:
+        graph, row = rows[:, 0], rows[:, 1]
+        weighted = adjacency.to(torch.float32)
+        degree = weighted.sum(-1)
+        present = degree > 0
+        present[graph, row] = True
+        present_graph, present_row = present.nonzero(as_tuple=True)
+        place = torch.full(present.shape, -1, dtype=torch.long)
+        place[present_graph, present_row] = torch.arange(len(present_graph))
+        inverse_sqrt = inverse_sqrt_degree(degree)
+        edge, neighbour = weighted[graph, row].nonzero(as_tuple=True)   # (selected row, neighbour), sorted
+        values = (inverse_sqrt[graph, row][edge] * weighted[graph[edge], row[edge], neighbour]
+                  * inverse_sqrt[graph[edge], neighbour])
+        aggregation = torch.sparse_coo_tensor(   # sorted, unique (edge, place) pairs: coalesced
+            torch.stack([edge, place[graph[edge], neighbour]]), values, (len(rows), len(present_graph)),
+            is_coalesced=True, check_invariants=False)
+        return cls(rows, adjacency, present, present_graph, place[graph, row], aggregation)
 
 
 class OneGraphForward:
