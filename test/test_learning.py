@@ -9,6 +9,7 @@ from exit_decision.errors import PolicyError
 from exit_decision.graph import TrafficGraph
 from exit_decision.learning.agent import GraphQAgent, UpdateSettings
 from exit_decision.learning.replay import DecisionRecord, EpisodeAccumulator, ReplayBuffer, scored_rewards
+from exit_decision.learning.sampling import WeightSampler, dirichlet_rows
 from exit_decision.model.networks import GraphQNetwork, NetworkShape, SelectedRows, normalize_adjacency
 from exit_decision.learning.checkpoints import save_policy
 from exit_decision.model.modes import Mode
@@ -304,3 +305,24 @@ def test_relabelled_rewards_score_each_transition_under_its_own_weights():
     weights = np.array([[1.0, 0, 0, 0, 1.0, 0], [0.5, 0.5, 0, 0, 0.5, 0.5]])
     rewards = scored_rewards(batch, weights_of_input(weights), 'own')
     assert rewards[0, 0] == pytest.approx(1.0) and rewards[1, 0] == pytest.approx(0.25)
+
+
+def test_relabelling_weights_follow_the_dirichlet_around_each_mode():
+    """The batch's stick-breaking Dirichlet has the Dirichlet's mean and variance, and every
+    relabelled weight vector stays on the simplex (decision shares and the incentive pair)."""
+    rng = np.random.default_rng(0)
+    alpha = np.tile([20.0, 10.0, 5.0, 15.0], (40000, 1))
+    draws = dirichlet_rows(rng, alpha)
+    total = alpha[0].sum()
+    mean = alpha[0] / total
+    np.testing.assert_allclose(draws.mean(0), mean, atol=3e-3)
+    np.testing.assert_allclose(draws.var(0), mean * (1 - mean) / (total + 1), rtol=0.05)
+    np.testing.assert_allclose(draws.sum(1), 1.0, atol=1e-12)
+    config = load_project()
+    sampler = WeightSampler(config, ['AGGI', 'CONP'], exact_share=0.25, concentration=30.0, rng=rng)
+    weights = sampler.sample(500)
+    assert (weights >= 0).all()
+    np.testing.assert_allclose(weights[:, :4].sum(1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(weights[:, 4] + weights[:, 5], 1.0, atol=1e-9)
+    exact = (weights[:, None, :] == sampler.anchors[None]).all(-1).any(-1)
+    assert 0.15 < exact.mean() < 0.35, 'a quarter of the draws are a mode exactly'

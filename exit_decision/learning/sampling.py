@@ -32,11 +32,26 @@ class WeightSampler:
         anchors = self.anchors[self.rng.integers(len(self.anchors), size=count)]
         near = self.rng.random(count) >= self.exact_share
         if near.any():
-            k = self.concentration
-            decision = np.array([self.rng.dirichlet(k * a[:4] + 1e-3) for a in anchors[near]])
-            incentive = np.array([self.rng.beta(k * a[4] + 1e-3, k * a[5] + 1e-3) for a in anchors[near]])
+            concentrated = self.concentration * anchors[near] + 1e-3
+            decision = dirichlet_rows(self.rng, concentrated[:, :4])
+            incentive = self.rng.beta(concentrated[:, 4], concentrated[:, 5])
             anchors[near] = np.column_stack([decision, incentive, 1.0 - incentive])
         return anchors
+
+
+def dirichlet_rows(rng: np.random.Generator, alpha: np.ndarray) -> np.ndarray:
+    """One Dirichlet draw per row of ``alpha`` (M, K), by stick breaking: component j is a
+    Beta(alpha_j, alpha_j+1 + ... + alpha_K) share of what the components before it left (the
+    same distribution as ``rng.dirichlet``, which takes one alpha at a time)."""
+    tails = alpha[:, ::-1].cumsum(axis=1)[:, ::-1]   # alpha_j + ... + alpha_K
+    draws = np.empty_like(alpha)
+    left = np.ones(len(alpha))
+    for j in range(alpha.shape[1] - 1):
+        share = rng.beta(alpha[:, j], tails[:, j + 1])
+        draws[:, j] = left * share
+        left = left * (1.0 - share)
+    draws[:, -1] = left
+    return draws
 
 
 @dataclass(frozen=True)
@@ -94,7 +109,7 @@ class Experience:
         if demo_count:
             parts.append(self.demos.sample(self.rng.integers(len(self.demos), size=demo_count)))
             is_demo.append(np.ones(demo_count, bool))
-        batch = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        batch = parts[0] if len(parts) == 1 else {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
         size = len(batch['discounts'])
         if self.weights is not None:
             weights = self.weights.sample(size)

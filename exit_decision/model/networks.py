@@ -217,16 +217,15 @@ class SelectedRows:
     @classmethod
     def of(cls, adjacency: torch.Tensor, rows: torch.Tensor) -> SelectedRows:
         graph, row = rows[:, 0], rows[:, 1]
-        weighted = adjacency.to(torch.float32)
-        degree = weighted.sum(-1)
+        degree = adjacency.sum(-1, dtype=torch.float32)
         present = degree > 0
         present[graph, row] = True
         present_graph, present_row = present.nonzero(as_tuple=True)
         place = torch.full(present.shape, -1, dtype=torch.long)
         place[present_graph, present_row] = torch.arange(len(present_graph))
         inverse_sqrt = inverse_sqrt_degree(degree)
-        edge, neighbour = weighted[graph, row].nonzero(as_tuple=True)   # (selected row, neighbour), sorted
-        values = (inverse_sqrt[graph, row][edge] * weighted[graph[edge], row[edge], neighbour]
+        edge, neighbour = adjacency[graph, row].nonzero(as_tuple=True)   # (selected row, neighbour), sorted
+        values = (inverse_sqrt[graph, row][edge] * adjacency[graph[edge], row[edge], neighbour].to(torch.float32)
                   * inverse_sqrt[graph[edge], neighbour])
         aggregation = torch.sparse_coo_tensor(   # sorted, unique (edge, place) pairs: coalesced
             torch.stack([edge, place[graph[edge], neighbour]]), values, (len(rows), len(present_graph)),
