@@ -215,17 +215,19 @@ for module, names in {{'launch': ['LaunchDescription'], 'launch.actions': ['Decl
         setattr(stub, name, type(name, (), {{}}))
 spec = importlib.util.spec_from_file_location('launch_file', {str(LAUNCH_FILE)!r})
 spec.loader.exec_module(importlib.util.module_from_spec(spec))
-print(os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'], 'rclpy' in sys.modules, os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'])
+print(os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'], 'rclpy' in sys.modules, os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'],
+      os.environ.get('RMW_FASTRTPS_USE_QOS_FROM_XML'))
 '''
 
 
 def test_the_ros2_launch_process_keeps_dds_on_loopback_before_any_node_and_a_users_choice_wins():
     """The launch file sets the defaults in the `ros2 launch` process itself (launch_ros may
     start a node there; every node it starts inherits them), without importing rclpy."""
-    loopback, rclpy_loaded, profile = python(LAUNCH_PROCESS, FASTRTPS_DEFAULT_PROFILES_FILE=None).split(' ')
-    assert (loopback, rclpy_loaded) == ('LOCALHOST', 'False') and profile.endswith('config/fastdds.xml')
-    assert python(LAUNCH_PROCESS, ROS_AUTOMATIC_DISCOVERY_RANGE='OFF', FASTRTPS_DEFAULT_PROFILES_FILE='mine.xml'
-                  ) == 'OFF False mine.xml'
+    loopback, rclpy_loaded, profile, from_xml = python(LAUNCH_PROCESS, FASTRTPS_DEFAULT_PROFILES_FILE=None,
+                                                       RMW_FASTRTPS_USE_QOS_FROM_XML=None).split(' ')
+    assert (loopback, rclpy_loaded, from_xml) == ('LOCALHOST', 'False', '1') and profile.endswith('config/fastdds.xml')
+    assert python(LAUNCH_PROCESS, ROS_AUTOMATIC_DISCOVERY_RANGE='OFF', FASTRTPS_DEFAULT_PROFILES_FILE='mine.xml',
+                  RMW_FASTRTPS_USE_QOS_FROM_XML=None) == 'OFF False mine.xml None'
 
 
 def test_every_entry_point_takes_the_default_from_one_place():

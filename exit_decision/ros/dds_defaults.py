@@ -4,8 +4,10 @@ them: free of rclpy, so they apply before a participant exists, in the nodes (th
 process itself (the launch file), whose children inherit them.
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: DDS stays on this machine.
-- ``FASTRTPS_DEFAULT_PROFILES_FILE``: Fast DDS's discovery timing (``config/fastdds.xml`` says
-  why); a user's own profile file wins.
+- ``FASTRTPS_DEFAULT_PROFILES_FILE``: Fast DDS's discovery timing and readers' memory that is
+  freed once a message is taken (``config/fastdds.xml`` says why), with
+  ``RMW_FASTRTPS_USE_QOS_FROM_XML=1``, without which rmw_fastrtps ignores the file's memory
+  policies; a user's own profile file wins, and then neither is set.
 """
 from __future__ import annotations
 
@@ -24,3 +26,4 @@ def apply_dds_defaults() -> None:
         return   # not installed: the node says so when it loads its config
     if profile.is_file():
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
+        os.environ.setdefault('RMW_FASTRTPS_USE_QOS_FROM_XML', '1')
