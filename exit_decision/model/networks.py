@@ -6,9 +6,10 @@ non-graph baselines of papers 002 / 003 (an MLP per CAV row, dueling streams for
 DQN) are other ``NetworkShape`` values of the same module.
 
 GCN layer (Kipf & Welling; paper 000, Eq. 5): Z = relu(D^-1/2 A D^-1/2 H W + b). The adjacency
-the graph builder makes already has self loops, so no identity is added here. Everything works
-on dense batched tensors: features (B, N, F), adjacency (B, N, N). N is whatever the input
-has: nothing here depends on the road.
+the graph builder makes already has self loops, so no identity is added here. ``forward`` works
+on dense batched tensors: features (B, N, F), adjacency (B, N, N); learning's
+``cav_q_values`` gives the same values on selected rows only (``SelectedRows``: the vehicles
+present, a sparse aggregation). N is whatever the input has: nothing here depends on the road.
 
 A *mode-conditioned* network (``num_weights`` > 0) is Q(s, a, w): the mode's weights w (the
 six numbers of ``reward.weight_input``) are appended to every row's features and to the
