@@ -69,9 +69,11 @@ def test_the_check_finds_the_shipped_policy_beside_another_name():
 def source_policy(command: str) -> str | None:
     """The policy a figure's command draws it from: its ``--policy`` run (a directory or its
     checkpoint), the default algorithm for ``stack`` without one; None for a command of many."""
-    policy = re.search(r'--policy (\S+)', command)
-    if policy:
-        path = Path(policy[1])
+    policies = re.findall(r'--policy (\S+)', command)
+    if len(policies) > 1:
+        return None
+    if policies:
+        path = Path(policies[0])
         return path.parent.name if path.suffix == '.pt' else path.name
     return DEFAULT_ALGORITHM if command.split()[1] == 'stack' else None
 
