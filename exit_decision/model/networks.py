@@ -225,8 +225,9 @@ class SelectedRows:
         place = torch.full(present.shape, -1, dtype=torch.long)
         place[present_graph, present_row] = torch.arange(len(present_graph))
         inverse_sqrt = inverse_sqrt_degree(degree)
-        edge, neighbour = adjacency[graph, row].nonzero(as_tuple=True)   # (selected row, neighbour), sorted
-        values = (inverse_sqrt[graph, row][edge] * adjacency[graph[edge], row[edge], neighbour].to(torch.float32)
+        selected_adjacency = adjacency[graph, row]   # (R, N)
+        edge, neighbour = selected_adjacency.nonzero(as_tuple=True)   # (selected row, neighbour), sorted
+        values = (inverse_sqrt[graph, row][edge] * selected_adjacency[edge, neighbour].to(torch.float32)
                   * inverse_sqrt[graph[edge], neighbour])
         aggregation = torch.sparse_coo_tensor(   # sorted, unique (edge, place) pairs: coalesced
             torch.stack([edge, place[graph[edge], neighbour]]), values, (len(rows), len(present_graph)),

@@ -31,11 +31,11 @@ QoS, on purpose, per topic (docs/design.md, "ROS 2", says the same):
 What a queue holds: at most its depth x the largest message accepted on its topic (the size
 limits of ``messages/sizes.py``, from the graph's N; the intake, ``intake.py``, refuses larger
 ones once taken: the middleware cannot refuse them earlier here, so until then a queue holds
-its depth of messages of any size, their memory freed once taken: config/fastdds.xml). For N = 60: a node's states queue (graph builder, decision
-node alone, visualizer) 1000 x 17.9 kB = 18 MB; its graph queue 1000 x 13 kB = 13 MB; the
-bridge's commands queue 1000 x 9.4 kB = 9.4 MB; the recorder's queues together about 160 MB
-(1000 x each of states, graph, commands, overrides, options, parameter events; markers 100 x
-0.78 MB; events 50 x 190 B). docs/ros.md, section 13, has the table.
+its depth of messages of any size, their memory freed once taken: config/fastdds.xml). For
+N = 60: a node's states queue (graph builder, decision node alone, visualizer) 1000 x 17.9 kB =
+18 MB; its graph queue 1000 x 13 kB = 13 MB; the bridge's commands queue 1000 x 9.4 kB = 9.4 MB;
+the recorder's queues together about 160 MB (1000 x each of states, graph, commands, overrides,
+options, parameter events; markers 100 x 0.78 MB; events 50 x 190 B). docs/ros.md, section 13, has the table.
 """
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
