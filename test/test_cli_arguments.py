@@ -45,6 +45,7 @@ BAD = [
     ['anchor', '--config-dir', 'MISSING'],
     ['one-step-gains', '--policy', 'MISSING'], ['one-step-gains', '--policy', A_POLICY, '--score-mode', 'NOPE'],
     ['one-step-gains', '--episodes', '0'], ['one-step-gains', '--seed', '-1'], ['one-step-gains', '--points', '0'],
+    ['one-step-gains', '--futures', '1'], ['one-step-gains', '--top', '0'], ['one-step-gains', '--future-speed-sd', '-0.1'],
     ['one-step-gains', '--policy', A_POLICY, '--reward-variant', 'NOPE'], ['one-step-gains', '--config-dir', 'MISSING'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '0'],
     ['evaluate', '--driver', 'rule_based', '--episodes', '-3'],

@@ -90,6 +90,29 @@ def test_one_graph_inference_is_bit_identical_to_the_forward_pass(shape):
         net.one_graph(features, adjacency.astype(np.float32), w)
 
 
+@pytest.mark.parametrize('shape', list(_shapes().values()), ids=list(_shapes()))
+def test_learning_values_the_selected_rows_as_the_forward_pass_does(shape):
+    """Learning values only the rows it learns from (``cav_q_values``): the same values and
+    gradients as ``forward`` on those rows, up to rounding, on a batch with absent vehicles."""
+    torch.manual_seed(0)
+    net = GraphQNetwork(NetworkShape(num_features=8, num_actions=A, **shape))
+    n = shape.get('num_nodes') or 12
+    adjacency = (torch.rand(4, n, n) < 0.3).to(torch.uint8)
+    adjacency = torch.maximum(adjacency, adjacency.transpose(1, 2)) | torch.eye(n, dtype=torch.uint8)
+    adjacency[:, n - 3:] = adjacency[:, :, n - 3:] = 0          # absent vehicles: no edge at all
+    features, rows = torch.rand(4, n, 8), torch.tensor([[0, 1], [0, 4], [2, 0], [3, n - 4], [3, 2]])
+    weights = torch.rand(4, 6) if shape.get('num_weights') else None
+    selected = SelectedRows.of(adjacency, rows)
+    expected = net(features, adjacency, weights)[rows[:, 0], rows[:, 1]]
+    values = net.cav_q_values(features, selected, weights)
+    torch.testing.assert_close(values, expected)
+    grads = torch.autograd.grad(values.sum(), list(net.parameters()), allow_unused=True)
+    expected_grads = torch.autograd.grad(expected.sum(), list(net.parameters()), allow_unused=True)
+    for grad, expected_grad in zip(grads, expected_grads):
+        if expected_grad is not None:
+            torch.testing.assert_close(grad, expected_grad)
+
+
 def test_an_isolated_row_is_not_influenced_by_others():
     net = GraphQNetwork(NetworkShape(num_features=3, num_actions=A))
     features = torch.rand(1, 3, 3)

@@ -149,3 +149,15 @@ def test_a_learning_curve_has_flattened_only_with_enough_validations_and_a_slope
     assert not fits['AGGI']['flat'] and fits['AGGI']['low'] > 0, 'still rising'
     assert fits['CONP']['flat'] and fits['CONP']['low'] <= 0 <= fits['CONP']['high']
     assert not fits['AGGP']['flat'], 'level, but 3 validations in its last third are too few'
+
+
+def test_a_few_samples_get_students_t_interval():
+    """Repeated futures of a point are few (3-10): their interval uses t, wider than the normal's."""
+    import numpy as np
+
+    from exit_decision.evaluation.statistics import paired_interval, t_interval
+
+    mean, low, high = t_interval([1.0, 2.0, 3.0])
+    assert mean == 2.0 and high - mean == mean - low == pytest.approx(4.303 / np.sqrt(3))
+    assert high - low > paired_interval([1.0, 2.0, 3.0])[2] - paired_interval([1.0, 2.0, 3.0])[1]
+    assert np.isnan(t_interval([1.0])[1])

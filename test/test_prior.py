@@ -170,3 +170,38 @@ def test_one_step_gains_pair_each_option_with_the_prior_on_the_same_seed(tmp_pat
     assert any(row['gain'] != 0.0 for row in rows if not row['prior']), 'a deviation changes the episode'
     figures = summary(rows)
     assert figures['points'] == 1 and figures['control'] == 0.0 and figures['deviations'] == len(rows) - 1
+
+
+def test_fresh_futures_measure_the_best_options_again_paired_with_the_prior(tmp_path):
+    """The real gain of a point's best options: each again on fresh futures from the point, the
+    prior on the same future; the futures differ (the prior's return moves), and a future is the
+    same for the prior and the option (a second measurement repeats the first exactly)."""
+    from exit_decision.config import load_project
+    from exit_decision.env import ExitDecisionEnv
+    from exit_decision.evaluation.evaluate import constant_option_episodes, prior_of
+    from exit_decision.evaluation.one_step import fresh_future_gains, fresh_summary, one_step_gains
+    from ros_helpers import small_config_dir
+
+    config = load_project(small_config_dir(tmp_path / 'config'))
+    env = ExitDecisionEnv(config)
+    try:
+        table = prior_of(env, constant_option_episodes(env, [7]))
+        mode, weights = ModeWeights(config).mode('AGGI'), env.reward_fn.weights(config.mode('AGGI'))
+        rows = one_step_gains(env, table, mode, weights, [7], 2, np.random.default_rng(1))
+        fresh = fresh_future_gains(env, table, mode, weights, rows, 3, 2, 0.05)
+        again = fresh_future_gains(env, table, mode, weights, rows, 3, 2, 0.05)
+    finally:
+        env.close()
+    points = sorted({row['point'] for row in rows})
+    assert [(row['point'], row['rank'], row['future']) for row in fresh] == [
+        (point, rank, future) for point in points for future in range(3) for rank in range(2)]
+    for point in points:
+        best = max((row for row in rows if not row['prior'] and row['point'] == point), key=lambda row: row['gain'])
+        assert all(row['option'] == best['option'] and row['first_gain'] == best['gain']
+                   for row in fresh if row['rank'] == 0 and row['point'] == point)
+    assert [row['gain'] for row in fresh] == [row['gain'] for row in again], 'a future is reproducible'
+    assert len({row['prior_return'] for row in fresh}) > 1, 'the futures differ'
+    figures = fresh_summary(fresh)
+    assert figures['points'] == 2 and figures['prior_spread'] > 0
+    assert figures['fresh_low'] <= figures['fresh_mean'] <= figures['fresh_high']
+    assert figures['fresh_mean'] == pytest.approx(np.mean([row['gain'] for row in fresh if row['rank'] == 0]))

@@ -116,7 +116,7 @@ def cmd_one_step_gains(args: argparse.Namespace) -> int:
 
     from exit_decision.driving.prior import PriorTable
     from exit_decision.env import ExitDecisionEnv
-    from exit_decision.evaluation.one_step import one_step_gains, summary
+    from exit_decision.evaluation.one_step import fresh_future_gains, fresh_summary, one_step_gains, summary
     from exit_decision.model.modes import ModeWeights
     from exit_decision.model.policy import load_policy
     from exit_decision.tables import append_row
@@ -149,6 +149,16 @@ def cmd_one_step_gains(args: argparse.Namespace) -> int:
                   f'{s["share_gaining"]:.0%} gain; best option per point {s["best_mean"]:+.4f} (median '
                   f'{s["best_median"]:+.4f}), above +0.05 at {s["best_above_0.05"]:.0%} of the points; the '
                   f'control (the prior\'s own option) within {s["control"]:.1e}')
+            if args.futures:
+                fresh = fresh_future_gains(env, table, bound, env.reward_fn.weights(config.mode(mode)), rows,
+                                           args.futures, args.top, args.future_speed_sd, desc=f'{mode} futures')
+                for row in fresh:
+                    append_row(args.out / 'fresh_futures.csv', {'mode': mode, **row})
+                f = fresh_summary(fresh)
+                print(f'    on {args.futures} fresh futures (sd {args.future_speed_sd}): the best option per point '
+                      f'gains {f["fresh_mean"]:+.4f} [{f["fresh_low"]:+.4f}, {f["fresh_high"]:+.4f}] (first look '
+                      f'{f["first_mean"]:+.4f}); resolved above 0 at {f["resolved_share"]:.0%} of {f["points"]} '
+                      f'points; the prior\'s return moves {f["prior_spread"]:.3f} (sd) between futures')
     finally:
         env.close()
     return 0
@@ -212,6 +222,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     gains.add_argument('--episodes', type=COUNT, default=10, help='seeds')
     gains.add_argument('--seed', type=SEED, default=910_000, help='first seed (not a test or training seed)')
     gains.add_argument('--points', type=COUNT, default=3, help='random choice points per seed')
+    gains.add_argument('--futures', type=number(int, 2), default=None, metavar='K',
+                       help='measure each point\'s --top best options again on K fresh futures from the point, paired '
+                            'with the prior on each: their real gain, not the maximum over one realisation\'s noise '
+                            '(at least 2; default: not measured)')
+    gains.add_argument('--top', type=COUNT, default=2, help='options per point measured on the fresh futures')
+    gains.add_argument('--future-speed-sd', type=number(float, 0.0), default=0.02, metavar='SD',
+                       help='a fresh future multiplies each human driver\'s hidden speed factor by 1 + N(0, SD) at the '
+                            'point, and redraws the insertions to come')
     gains.add_argument('--reward-variant', default=None, help='a variant of config/reward.yaml (default: env.yaml\'s)')
     gains.add_argument('--out', type=Path, default=Path('runs/one_step_gains'),
                        help='where one_step_gains.csv goes (rows appended)')

@@ -25,6 +25,20 @@ def paired_interval(differences: Sequence[float]) -> tuple[float, float, float]:
     return mean, mean - half, mean + half
 
 
+def t_interval(values: Sequence[float]) -> tuple[float, float, float]:
+    """(mean, low, high) with Student's t quantile: for a few samples (repeated futures of a point)."""
+    values = np.asarray(values, dtype=float)
+    mean = float(values.mean())
+    if values.size < 2:
+        return mean, float('nan'), float('nan')
+    half = _t_95(values.size - 1) * float(values.std(ddof=1)) / np.sqrt(values.size)
+    return mean, mean - half, mean + half
+
+
+def _t_95(degrees: int) -> float:
+    return T_95[degrees - 1] if degrees <= len(T_95) else Z_95
+
+
 def paired_differences(own: Sequence[Mapping], theirs: Sequence[Mapping], metric: str) -> np.ndarray:
     """Per seed, ``own``'s ``metric`` minus ``theirs``' on the same seed (rows with a ``seed``), in
     ``own``'s order; ValueError when the two runs are not on the same seeds."""
@@ -51,7 +65,7 @@ def slope_interval(x: Sequence[float], y: Sequence[float]) -> tuple[float, float
         return float(slope), float('nan'), float('nan')
     residuals = y - (slope * x + intercept)
     error = np.sqrt(residuals @ residuals / (x.size - 2) / ((x - x.mean()) @ (x - x.mean())))
-    half = (T_95[x.size - 3] if x.size - 2 <= len(T_95) else Z_95) * error
+    half = _t_95(x.size - 2) * error
     return float(slope), float(slope - half), float(slope + half)
 
 

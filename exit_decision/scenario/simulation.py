@@ -186,6 +186,18 @@ class HighwaySimulation:
         self._last = self._read_step()
         return self._last
 
+    def perturb_future(self, seed: int, speed_factor_sd: float) -> None:
+        """Another future from this state, for repeated futures (``evaluation.one_step``): the rest
+        of the episode's insertions drawn from a fresh stream ``seed``, and each human driver's
+        desired speed factor, which the graph does not show, multiplied by 1 + N(0, sd)."""
+        self._rng = np.random.default_rng(seed)
+        vehicle_api = self._sumo.vehicle
+        for vehicle in self._snapshot.vehicles:
+            if vehicle.vehicle_class != CAV:
+                factor = vehicle_api.getSpeedFactor(vehicle.vehicle_id)
+                vehicle_api.setSpeedFactor(vehicle.vehicle_id,
+                                           max(factor * (1.0 + self._rng.normal(0.0, speed_factor_sd)), 0.1))
+
     # --- the scenario's rules -------------------------------------------------------------
 
     def _apply_hv2_rule(self) -> None:
