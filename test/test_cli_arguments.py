@@ -205,7 +205,7 @@ def test_the_stack_takes_per_mode_policies_by_path_and_refuses_a_missing_mode_in
 
 def test_an_old_spelling_notes_its_new_one_on_stderr_after_the_command(monkeypatch, capsys):
     import exit_decision.evaluation.plots as plots
-    monkeypatch.setattr(plots, 'make_all', lambda runs, evaluation, out: [f'{len(runs)} runs'])
+    monkeypatch.setattr(plots, 'make_all', lambda runs, evaluation, out, gains: [f'{len(runs)} runs'])
     monkeypatch.chdir(REPO)
     assert main(['plot', '--runs', 'policies/mdgqn_conditioned', 'policies/gqn_options_conditioned', '--out', 'runs/never']) == 0
     out, err = capsys.readouterr()

@@ -132,6 +132,22 @@ def test_the_tradeoff_is_redrawn_from_its_csv_with_names_that_do_not_overlap(tmp
     assert titles[0].startswith('x: one checkpoint at every weight point (20 seeds each')
 
 
+def test_fresh_futures_draw_each_points_best_option_first_look_against_its_fresh_mean(tmp_path, captured):
+    """Issue 39's noise check: x = a point's best option's first gain, y = its mean on fresh
+    futures with the interval; only the best (rank 0) is drawn, one panel per mode."""
+    rows = [{'mode': mode, 'seed': 1, 'point': point, 'rank': rank, 'future': future, 'first_gain': first,
+             'gain': fresh + 0.01 * future - (0.5 if rank else 0.0)}
+            for mode in ('AGGI', 'CONP') for point, first, fresh in ((3, 0.2, 0.0), (9, 0.1, 0.05))
+            for rank in (0, 1) for future in range(3)]
+    write_rows(tmp_path / 'fresh_futures.csv', rows)
+    assert plots.fresh_futures(tmp_path, tmp_path).name == 'one_step_fresh_futures.png'
+    axes = captured[0].axes
+    assert [ax.get_title().split('\n')[0] for ax in axes] == ['AGGI: 2 points', 'CONP: 2 points']
+    x, y = axes[0].lines[0].get_data()
+    assert list(x) == [0.2, 0.1] and list(y) == pytest.approx([0.01, 0.06])
+    assert 'fresh mean +0.035' in axes[0].get_title()
+
+
 def test_a_learning_curve_has_flattened_only_with_enough_validations_and_a_slope_reaching_zero():
     """Issue 39's budget: >= 6 validations in the last third, the fitted slope's 95% interval reaching 0."""
     import numpy as np

@@ -18,7 +18,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from exit_decision.evaluation.statistics import MIN_LAST_THIRD_VALIDATIONS, last_third_slopes
     from exit_decision.tables import read_rows
 
-    for path in make_all(args.policy, args.evaluation, args.out):
+    for path in make_all(args.policy, args.evaluation, args.out, args.one_step_gains):
         print(path)
     for run in args.policy or []:
         if (run / 'validation.csv').exists():
@@ -70,6 +70,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
              'none)'), several=True)
     plot.add_argument('--evaluation', type=existing('dir'), default=None,
                       help='an evaluate --out directory (default: none)')
+    plot.add_argument('--one-step-gains', type=existing('dir'), default=None, metavar='DIR',
+                      help='a one-step-gains --futures --out directory: its best options\' first and fresh-future '
+                           'gains (default: none)')
     plot.add_argument('--out', type=Path, default=Path('docs/figures'), help='where the figures go')
     plot.set_defaults(func=cmd_plot)
 

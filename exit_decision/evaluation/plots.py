@@ -10,6 +10,9 @@
 - ``validation_<run>.png``: the learning curve judged against the teacher: per validation
   mode, the candidate's mean paired return gain over the neutral rule-based teacher (the
   teacher's level is the line at 0) and its Exit-1 rate against the target.
+- ``one_step_fresh_futures.png``: per mode, each choice point's best option over the prior, its
+  gain on the first look (one realisation) against its mean gain on fresh futures, with 95%
+  intervals: what is left of the maximum once its noise is gone (``one-step-gains --futures``).
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, TEACHER  # noqa: E402
-from exit_decision.evaluation.statistics import last_third_slopes, paired_differences, paired_interval  # noqa: E402
+from exit_decision.evaluation.statistics import (last_third_slopes, paired_differences,  # noqa: E402
+                                                 paired_interval, t_interval)
 from exit_decision.model.names import described  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
@@ -271,11 +275,42 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
     return paths
 
 
-def make_all(run_dirs: list[Path], evaluation_dir: Path | None, out: Path) -> list[Path]:
+def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
+    """Per mode of ``gains_dir``/fresh_futures.csv: each point's best option (rank 0), its first
+    gain (x) against its mean gain on the fresh futures (y, 95% interval over the futures)."""
+    rows = read_rows(gains_dir / 'fresh_futures.csv')
+    if not rows:
+        return None
+    modes = list(dict.fromkeys(row['mode'] for row in rows))
+    fig, axes = plt.subplots(1, len(modes), figsize=(3.2 * len(modes), 3.2), sharex=True, sharey=True, squeeze=False)
+    for ax, mode in zip(axes[0], modes):
+        points: dict[tuple[str, str], list[dict]] = {}
+        for row in rows:
+            if row['mode'] == mode and int(row['rank']) == 0:
+                points.setdefault((row['seed'], row['point']), []).append(row)
+        first = np.array([float(found[0]['first_gain']) for found in points.values()])
+        fresh = np.array([t_interval([float(row['gain']) for row in found]) for found in points.values()])
+        ax.errorbar(first, fresh[:, 0], yerr=[fresh[:, 0] - fresh[:, 1], fresh[:, 2] - fresh[:, 0]], fmt='o',
+                    markersize=3, capsize=2, color='tab:blue', alpha=0.8)
+        low, high = min(first.min(), fresh[:, 1].min()), max(first.max(), fresh[:, 2].max())
+        ax.plot([low, high], [low, high], ':', color='grey', label='fresh = first')
+        ax.axhline(0.0, color='black', linewidth=0.8)
+        mean, mean_low, mean_high = t_interval(fresh[:, 0])
+        ax.set_title(f'{mode}: {len(first)} points\nfresh mean {mean:+.3f} [{mean_low:+.3f}, {mean_high:+.3f}]',
+                     fontsize=9)
+        ax.set_xlabel('gain on the first look')
+    axes[0][0].set_ylabel('mean gain on fresh futures (95%)')
+    axes[0][0].legend(fontsize=7, loc='upper left')
+    return save(fig, out / 'one_step_fresh_futures.png')
+
+
+def make_all(run_dirs: list[Path], evaluation_dir: Path | None, out: Path, gains_dir: Path | None = None) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     made = [training_reward(run_dirs, out), reward_comparison(run_dirs, out)]
     made += [validation_curves(run_dir, out) for run_dir in run_dirs]
     if evaluation_dir is not None:
         made += [test_reward(evaluation_dir, out), speeds(evaluation_dir, out)]
         made += action_distributions(evaluation_dir, out)
+    if gains_dir is not None:
+        made.append(fresh_futures(gains_dir, out))
     return [path for path in made if path is not None]
