@@ -73,7 +73,7 @@ BAD = [
     ['options-table', '--policy', NOT_CHECKPOINT], ['options-table', '--policy', 'MISSING'],
     ['tradeoff', '--policy', NOT_CHECKPOINT], ['tradeoff', '--policy', 'MISSING'], ['tradeoff', '--episodes', '0'],
     ['tradeoff', '--seed', '-1'],
-    ['plot', '--policy', 'MISSING'], ['plot', '--runs', 'MISSING'], ['plot', '--runs', 'EXISTING', 'MISSING'], ['plot', '--evaluation', 'MISSING'],
+    ['plot', '--policy', 'MISSING'], ['plot', '--runs', 'MISSING'], ['plot', '--runs', 'EXISTING', 'MISSING'], ['plot', '--evaluation', 'MISSING'], ['plot', '--one-step-gains', 'MISSING'],
     ['report', '--evaluation', 'MISSING'], ['report', '--policy', 'MISSING'], ['report', '--runs', 'MISSING'], ['report', '--sanity', 'MISSING'],
     ['report', '--config-dir', 'MISSING'], ['report', '--tradeoff', 'MISSING'], ['report', '--figures', 'MISSING'],
     ['report', '--options-table', 'MISSING'], ['report', '--readme', 'MISSING'],

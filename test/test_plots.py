@@ -143,9 +143,10 @@ def test_fresh_futures_draw_each_points_best_option_first_look_against_its_fresh
     assert plots.fresh_futures(tmp_path, tmp_path).name == 'one_step_fresh_futures.png'
     axes = captured[0].axes
     assert [ax.get_title().split('\n')[0] for ax in axes] == ['AGGI: 2 points', 'CONP: 2 points']
+    assert axes[0].get_yscale() == 'symlog', 'gains of 0.01 and of 20 on one axis'
     x, y = axes[0].lines[0].get_data()
     assert list(x) == [0.2, 0.1] and list(y) == pytest.approx([0.01, 0.06])
-    assert 'fresh mean +0.035' in axes[0].get_title()
+    assert 'fresh mean +0.035' in axes[0].get_title() and 'median +0.035' in axes[0].get_title()
 
 
 def test_a_learning_curve_has_flattened_only_with_enough_validations_and_a_slope_reaching_zero():

@@ -204,4 +204,6 @@ def test_fresh_futures_measure_the_best_options_again_paired_with_the_prior(tmp_
     figures = fresh_summary(fresh)
     assert figures['points'] == 2 and figures['prior_spread'] > 0
     assert figures['fresh_low'] <= figures['fresh_mean'] <= figures['fresh_high']
+    per_point = [np.mean([row['gain'] for row in fresh if row['rank'] == 0 and row['point'] == point]) for point in points]
+    assert figures['fresh_median'] == pytest.approx(np.median(per_point))
     assert figures['fresh_mean'] == pytest.approx(np.mean([row['gain'] for row in fresh if row['rank'] == 0]))

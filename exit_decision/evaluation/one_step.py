@@ -114,7 +114,8 @@ def summary(rows: Sequence[dict]) -> dict[str, float]:
 
 def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
     """Of each point's best deviation (rank 0): its first gain (the biased maximum) and its mean
-    gain on the fresh futures, averaged over points with a 95% interval; the share of points whose
+    gain on the fresh futures, averaged over points with a 95% interval, and their median (one
+    future with a collision moves the mean by itself); the share of points whose
     fresh gain is resolved above 0 (t interval over the futures); and how much the prior's own
     return moves between futures (0 would mean the futures are not fresh)."""
     per_point: dict[tuple[int, int], list[dict]] = {}
@@ -125,6 +126,7 @@ def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
     mean, low, high = t_interval([point[0] for point in fresh])
     return {'points': len(fresh), 'first_mean': float(np.mean([found[0]['first_gain'] for found in per_point.values()])),
             'fresh_mean': mean, 'fresh_low': low, 'fresh_high': high,
+            'fresh_median': float(np.median([point[0] for point in fresh])),
             'resolved_share': float(np.mean([point[1] > 0 for point in fresh])),
             'prior_spread': float(np.mean([np.std([row['prior_return'] for row in found], ddof=1)
                                            for found in per_point.values()]))}

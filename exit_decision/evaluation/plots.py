@@ -32,6 +32,7 @@ from exit_decision.model.names import described  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
 SMOOTHING = 10   # episodes in the rolling mean of training curves
+SYMLOG_GAIN = 0.01   # one-step gains: linear within this, logarithmic beyond
 REFERENCE = TEACHER   # the driver test returns are drawn against
 
 
@@ -282,7 +283,7 @@ def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
     if not rows:
         return None
     modes = list(dict.fromkeys(row['mode'] for row in rows))
-    fig, axes = plt.subplots(1, len(modes), figsize=(3.2 * len(modes), 3.2), sharex=True, sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(modes), figsize=(3.4 * len(modes), 3.4), squeeze=False)
     for ax, mode in zip(axes[0], modes):
         points: dict[tuple[str, str], list[dict]] = {}
         for row in rows:
@@ -296,8 +297,10 @@ def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
         ax.plot([low, high], [low, high], ':', color='grey', label='fresh = first')
         ax.axhline(0.0, color='black', linewidth=0.8)
         mean, mean_low, mean_high = t_interval(fresh[:, 0])
-        ax.set_title(f'{mode}: {len(first)} points\nfresh mean {mean:+.3f} [{mean_low:+.3f}, {mean_high:+.3f}]',
-                     fontsize=9)
+        ax.set_title(f'{mode}: {len(first)} points\nfresh mean {mean:+.3f} [{mean_low:+.3f}, {mean_high:+.3f}], '
+                     f'median {np.median(fresh[:, 0]):+.3f}', fontsize=8)
+        ax.set_xscale('symlog', linthresh=SYMLOG_GAIN)   # gains of 0.01 and a collision's 20 on one axis
+        ax.set_yscale('symlog', linthresh=SYMLOG_GAIN)
         ax.set_xlabel('gain on the first look')
     axes[0][0].set_ylabel('mean gain on fresh futures (95%)')
     axes[0][0].legend(fontsize=7, loc='upper left')
