@@ -157,8 +157,9 @@ def cmd_one_step_gains(args: argparse.Namespace) -> int:
                 f = fresh_summary(fresh)
                 print(f'    on {args.futures} fresh futures (sd {args.future_speed_sd}): the best option per point '
                       f'gains {f["fresh_mean"]:+.4f} [{f["fresh_low"]:+.4f}, {f["fresh_high"]:+.4f}] (first look '
-                      f'{f["first_mean"]:+.4f}; median over the points {f["fresh_median"]:+.4f}); resolved above 0 at {f["resolved_share"]:.0%} of {f["points"]} '
-                      f'points; the prior\'s return moves {f["prior_spread"]:.3f} (sd) between futures')
+                      f'{f["first_mean"]:+.4f}; median over the points {f["fresh_median"]:+.4f}); resolved above 0 '
+                      f'at {f["resolved_share"]:.0%} of {f["points"]} points; the prior\'s return moves '
+                      f'{f["prior_spread"]:.3f} (sd) between futures')
     finally:
         env.close()
     return 0

@@ -115,9 +115,9 @@ def summary(rows: Sequence[dict]) -> dict[str, float]:
 def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
     """Of each point's best deviation (rank 0): its first gain (the biased maximum) and its mean
     gain on the fresh futures, averaged over points with a 95% interval, and their median (one
-    future with a collision moves the mean by itself); the share of points whose
-    fresh gain is resolved above 0 (t interval over the futures); and how much the prior's own
-    return moves between futures (0 would mean the futures are not fresh)."""
+    future with a collision moves the mean by itself); the share of points whose fresh gain is
+    resolved above 0 (t interval over the futures); and how much the prior's own return moves
+    between futures (0 would mean the futures are not fresh)."""
     per_point: dict[tuple[int, int], list[dict]] = {}
     for row in rows:
         if row['rank'] == 0:

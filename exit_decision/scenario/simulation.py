@@ -38,6 +38,7 @@ CavDriver = Literal['policy', 'sumo']
 #: SUMO's default lane-change mode (LC2013 does everything, respects others' gaps).
 SUMO_DEFAULT_LANE_CHANGE_MODE = 0b011001010101
 SUMO_DEFAULT_SPEED_MODE = 31       # every safety check on
+MIN_SPEED_FACTOR = 0.1             # a perturbed future's human driver still wants to move
 SIGNAL_BLINKER_RIGHT, SIGNAL_BLINKER_LEFT = 1, 2
 
 
@@ -195,8 +196,8 @@ class HighwaySimulation:
         for vehicle in self._snapshot.vehicles:
             if vehicle.vehicle_class != CAV:
                 factor = vehicle_api.getSpeedFactor(vehicle.vehicle_id)
-                vehicle_api.setSpeedFactor(vehicle.vehicle_id,
-                                           max(factor * (1.0 + self._rng.normal(0.0, speed_factor_sd)), 0.1))
+                perturbed = factor * (1.0 + self._rng.normal(0.0, speed_factor_sd))
+                vehicle_api.setSpeedFactor(vehicle.vehicle_id, max(perturbed, MIN_SPEED_FACTOR))
 
     # --- the scenario's rules -------------------------------------------------------------
 
