@@ -120,3 +120,24 @@ def test_under_a_flood_commands_keep_coming_memory_stays_bounded_and_every_drop_
     assert len(run.waits([phase.window])) > 0, 'decision steps answered during the flood'
     assert run.peak_mb and all(mb < MEMORY_MB for mb in run.peak_mb.values()), run.peak_mb
     assert run.uncounted(phase) == {node: 0.0 for node in run.subscribers[STATES_TOPIC]}, phase.counted
+
+
+def test_the_waits_p99_pools_the_pairs_of_a_topic_and_kind():
+    """One flood window's p99 is its few longest waits; the bench's ratio takes every flood window
+    of a (topic, kind) against every window between them, not each pair alone."""
+    from exit_decision.ros.stack.flood import FloodRun, Phase, report
+
+    run = FloodRun(state_rate=100.0, subscribers={STATES_TOPIC: []})
+    for pair, (flood_wait, quiet_wait) in enumerate(((0.010, 0.004), (0.004, 0.010))):
+        start = 100.0 * pair
+        phase = Phase(STATES_TOPIC, 'oversized', 1000.0, sent=5, rate=1000.0, window=(start, start + 10),
+                      quiet=(start + 20, start + 30))
+        run.phases.append(phase)
+        for step in range(10):
+            for at, wait in ((start + step, flood_wait), (start + 20 + step, quiet_wait)):
+                key = (1, len(run.decision_steps))
+                run.decision_steps[key], run.decided_at[key] = wait, at
+    text, ok = report(run)
+    lines = [line for line in text.splitlines() if 'decision wait p99' in line]
+    assert len(lines) == 2 and all('20 steps), 10.00 ms without (20 steps), its 2 pairs pooled: 1.00x ok' in line
+                                   for line in lines), text
