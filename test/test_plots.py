@@ -136,7 +136,7 @@ def test_fresh_futures_draw_each_points_best_option_first_look_against_its_fresh
     """Issue 39's noise check: x = a point's best option's first gain, y = its mean on fresh
     futures with the interval; only the best (rank 0) is drawn, one panel per mode."""
     rows = [{'mode': mode, 'seed': 1, 'point': point, 'rank': rank, 'future': future, 'first_gain': first,
-             'gain': fresh + 0.01 * future - (0.5 if rank else 0.0)}
+             'gain': fresh + 0.01 * future - (0.5 if rank else 0.0), 'prior_return': 6.0 + 0.1 * future}
             for mode in ('AGGI', 'CONP') for point, first, fresh in ((3, 0.2, 0.0), (9, 0.1, 0.05))
             for rank in (0, 1) for future in range(3)]
     write_rows(tmp_path / 'fresh_futures.csv', rows)

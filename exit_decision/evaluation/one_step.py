@@ -112,21 +112,30 @@ def summary(rows: Sequence[dict]) -> dict[str, float]:
             'best_above_0.05': float((per_point > 0.05).mean())}
 
 
-def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
-    """Of each point's best deviation (rank 0): its first gain (the biased maximum) and its mean
-    gain on the fresh futures, averaged over points with a 95% interval, and their median (one
-    future with a collision moves the mean by itself); the share of points whose fresh gain is
-    resolved above 0 (t interval over the futures); and how much the prior's own return moves
-    between futures (0 would mean the futures are not fresh)."""
-    per_point: dict[tuple[int, int], list[dict]] = {}
+def fresh_points(rows: Sequence[dict]) -> list[dict]:
+    """Per point of ``fresh_future_gains``'s rows (as returned, or read back from its CSV), its best
+    deviation (rank 0): the first gain, the fresh futures' mean gain with its t interval, and the
+    spread (sd) of the prior's own return between the futures."""
+    per_point: dict[tuple, list[dict]] = {}
     for row in rows:
-        if row['rank'] == 0:
+        if int(row['rank']) == 0:
             per_point.setdefault((row['seed'], row['point']), []).append(row)
-    fresh = [t_interval([row['gain'] for row in found]) for found in per_point.values()]
-    mean, low, high = t_interval([point[0] for point in fresh])
-    return {'points': len(fresh), 'first_mean': float(np.mean([found[0]['first_gain'] for found in per_point.values()])),
-            'fresh_mean': mean, 'fresh_low': low, 'fresh_high': high,
-            'fresh_median': float(np.median([point[0] for point in fresh])),
-            'resolved_share': float(np.mean([point[1] > 0 for point in fresh])),
-            'prior_spread': float(np.mean([np.std([row['prior_return'] for row in found], ddof=1)
-                                           for found in per_point.values()]))}
+    return [{'first': float(found[0]['first_gain']),
+             'fresh': t_interval([float(row['gain']) for row in found]),
+             'prior_spread': float(np.std([float(row['prior_return']) for row in found], ddof=1))}
+            for found in per_point.values()]
+
+
+def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
+    """Of each point's best deviation: its first gain (the biased maximum) and its mean gain on the
+    fresh futures, averaged over points with a 95% interval, and their median (one future with a
+    collision moves the mean by itself); the share of points whose fresh gain is resolved above 0
+    (t interval over the futures); and how much the prior's own return moves between futures (0
+    would mean the futures are not fresh)."""
+    points = fresh_points(rows)
+    means = [point['fresh'][0] for point in points]
+    mean, low, high = t_interval(means)
+    return {'points': len(points), 'first_mean': float(np.mean([point['first'] for point in points])),
+            'fresh_mean': mean, 'fresh_low': low, 'fresh_high': high, 'fresh_median': float(np.median(means)),
+            'resolved_share': float(np.mean([point['fresh'][1] > 0 for point in points])),
+            'prior_spread': float(np.mean([point['prior_spread'] for point in points]))}

@@ -26,8 +26,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from exit_decision.evaluation.report import REFERENCE_DRIVERS, TEACHER  # noqa: E402
-from exit_decision.evaluation.statistics import (last_third_slopes, paired_differences,  # noqa: E402
-                                                 paired_interval, t_interval)
+from exit_decision.evaluation.statistics import last_third_slopes, paired_differences, paired_interval  # noqa: E402
 from exit_decision.model.names import described  # noqa: E402
 from exit_decision.tables import read_rows  # noqa: E402
 
@@ -279,26 +278,26 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
 def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
     """Per mode of ``gains_dir``/fresh_futures.csv: each point's best option (rank 0), its first
     gain (x) against its mean gain on the fresh futures (y, 95% interval over the futures)."""
+    from exit_decision.evaluation.one_step import fresh_points, fresh_summary   # the simulation's imports: here only
+
     rows = read_rows(gains_dir / 'fresh_futures.csv')
     if not rows:
         return None
     modes = list(dict.fromkeys(row['mode'] for row in rows))
     fig, axes = plt.subplots(1, len(modes), figsize=(3.4 * len(modes), 3.4), squeeze=False)
     for ax, mode in zip(axes[0], modes):
-        points: dict[tuple[str, str], list[dict]] = {}
-        for row in rows:
-            if row['mode'] == mode and int(row['rank']) == 0:
-                points.setdefault((row['seed'], row['point']), []).append(row)
-        first = np.array([float(found[0]['first_gain']) for found in points.values()])
-        fresh = np.array([t_interval([float(row['gain']) for row in found]) for found in points.values()])
+        of_mode = [row for row in rows if row['mode'] == mode]
+        points, figures = fresh_points(of_mode), fresh_summary(of_mode)
+        first = np.array([point['first'] for point in points])
+        fresh = np.array([point['fresh'] for point in points])
         ax.errorbar(first, fresh[:, 0], yerr=[fresh[:, 0] - fresh[:, 1], fresh[:, 2] - fresh[:, 0]], fmt='o',
                     markersize=3, capsize=2, color='tab:blue', alpha=0.8)
         low, high = min(first.min(), fresh[:, 1].min()), max(first.max(), fresh[:, 2].max())
         ax.plot([low, high], [low, high], ':', color='grey', label='fresh = first')
         ax.axhline(0.0, color='black', linewidth=0.8)
-        mean, mean_low, mean_high = t_interval(fresh[:, 0])
-        ax.set_title(f'{mode}: {len(first)} points\nfresh mean {mean:+.3f} [{mean_low:+.3f}, {mean_high:+.3f}], '
-                     f'median {np.median(fresh[:, 0]):+.3f}', fontsize=8)
+        ax.set_title(f'{mode}: {len(first)} points\nfresh mean {figures["fresh_mean"]:+.3f} '
+                     f'[{figures["fresh_low"]:+.3f}, {figures["fresh_high"]:+.3f}], '
+                     f'median {figures["fresh_median"]:+.3f}', fontsize=8)
         ax.set_xscale('symlog', linthresh=SYMLOG_GAIN)   # gains of 0.01 and a collision's 20 on one axis
         ax.set_yscale('symlog', linthresh=SYMLOG_GAIN)
         ax.set_xlabel('gain on the first look')

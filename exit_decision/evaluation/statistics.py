@@ -17,21 +17,21 @@ T_95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2
 
 def paired_interval(differences: Sequence[float]) -> tuple[float, float, float]:
     """(mean, low, high) of per-seed differences: mean -+ 1.96 standard errors."""
-    values = np.asarray(differences, dtype=float)
-    mean = float(values.mean())
-    if values.size < 2:
-        return mean, float('nan'), float('nan')
-    half = Z_95 * float(values.std(ddof=1)) / np.sqrt(values.size)
-    return mean, mean - half, mean + half
+    return _mean_interval(differences, lambda degrees: Z_95)
 
 
 def t_interval(values: Sequence[float]) -> tuple[float, float, float]:
     """(mean, low, high) with Student's t quantile: for a few samples (repeated futures of a point)."""
+    return _mean_interval(values, _t_95)
+
+
+def _mean_interval(values: Sequence[float], quantile) -> tuple[float, float, float]:
+    """(mean, low, high): mean -+ ``quantile(degrees of freedom)`` standard errors; nan bounds below 2."""
     values = np.asarray(values, dtype=float)
     mean = float(values.mean())
     if values.size < 2:
         return mean, float('nan'), float('nan')
-    half = _t_95(values.size - 1) * float(values.std(ddof=1)) / np.sqrt(values.size)
+    half = quantile(values.size - 1) * float(values.std(ddof=1)) / np.sqrt(values.size)
     return mean, mean - half, mean + half
 
 

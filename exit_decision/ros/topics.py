@@ -35,7 +35,8 @@ its depth of messages of any size, their memory freed once taken: config/fastdds
 N = 60: a node's states queue (graph builder, decision node alone, visualizer) 1000 x 17.9 kB =
 18 MB; its graph queue 1000 x 13 kB = 13 MB; the bridge's commands queue 1000 x 9.4 kB = 9.4 MB;
 the recorder's queues together about 160 MB (1000 x each of states, graph, commands, overrides,
-options, parameter events; markers 100 x 0.78 MB; events 50 x 190 B). docs/ros.md, section 13, has the table.
+options, parameter events; markers 100 x 0.78 MB; events 50 x 190 B). docs/ros.md, section 13,
+has the table.
 """
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 

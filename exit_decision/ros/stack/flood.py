@@ -259,12 +259,13 @@ def report(run: FloodRun) -> tuple[str, bool]:
     pairs: dict[tuple[str, str], list[Phase]] = {}
     for phase in run.phases:
         pairs.setdefault((phase.topic, phase.kind), []).append(phase)
+    # the p99 of the decision waits in every flood of a topic and kind, over those between them:
+    # one 3-s window's p99 is its 3rd-5th longest wait, and two quiet windows differ by up to 3x
+    waits = {key: (run.waits([each.window for each in group]), run.waits([each.quiet for each in group]))
+             for key, group in pairs.items()}
     for phase in run.phases:
-        # the p99 of the decision waits in every flood of the topic and kind, over those between them:
-        # one 3-s window's p99 is its 3rd-5th longest wait, and two quiet windows differ by up to 3x
         group = pairs[(phase.topic, phase.kind)]
-        flood_waits = run.waits([each.window for each in group])
-        quiet_waits = run.waits([each.quiet for each in group])
+        flood_waits, quiet_waits = waits[(phase.topic, phase.kind)]
         p99 = (float(np.percentile(flood_waits, 99)) if len(flood_waits) else math.nan,
                float(np.percentile(quiet_waits, 99)) if len(quiet_waits) else math.nan)
         ratio = p99[0] / p99[1] if p99[1] else math.nan
