@@ -48,8 +48,8 @@ LEARNING_RECIPES = (('the grid\'s conditioned MDGQN (demonstrations)', 'mdgqn', 
                      'overrides/options_prior.yaml'))
 
 
-#: the recipe ``bench learning --actors`` trains: the shipped one, one step over the prior
-ACTOR_RECIPE = LEARNING_RECIPES[2]
+#: the recipe ``bench learning --actors`` trains: the shipped policy's (mdgqn_options_conditioned)
+ACTOR_RECIPE = LEARNING_RECIPES[1]
 
 
 def recipe_config(config_dir: Path | None, scenario_override, overrides, recipe: tuple) -> ProjectConfig:
@@ -161,7 +161,7 @@ def _update_parts(trainer, count: int = 100) -> dict[str, float]:
         batch = {key: torch.from_numpy(value) for key, value in sampled.arrays.items()}
         marks = [time.perf_counter()]
         rows = torch.nonzero(batch['actions'] >= 0)
-        q = agent.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows), batch.get('weights'))
+        q = agent.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows, batch['degrees']), batch.get('weights'))
         marks.append(time.perf_counter())
         with torch.no_grad():
             targets = agent.td_targets(batch, rows)
@@ -207,11 +207,13 @@ def bench_actors(config_dir: Path | None, scenario_override, overrides, seed: in
     label, algorithm, action_space, _ = ACTOR_RECIPE
     config = recipe_config(config_dir, scenario_override, overrides, ACTOR_RECIPE)
     counts = sorted(set(actors))
-    prior = _measured_prior(config, algorithm, action_space, seed) if action_space == 'options' else None
+    t = config.training.of_method(algorithm)
+    prior = _measured_prior(config, algorithm, action_space, seed) if 'prior' in (t.bootstrap, t.exploration.around) \
+        else None
     run = (algorithm, action_space, seed, episodes, prior)
     learning = {count: timed_episodes(config, *run, actors=count) for count in counts}
     alone = config.model_copy(update={'training': config.training.model_copy(update={'updates_per_decision': 0})})
-    collecting = {count: timed_episodes(alone, *run, actors=count) for count in counts if count}
+    collecting = {count: timed_episodes(alone, *run, actors=count) for count in counts}
     plain = {count: plain_processes(alone, *run, count=count) for count in counts if count}
     return actor_table(f'{label}, updates_per_decision {config.training.of_method(algorithm).updates_per_decision}',
                        episodes, learning, collecting, plain)
@@ -288,31 +290,40 @@ def actor_table(recipe: str, episodes: int, learning: dict[int, Collected], coll
                 plain: dict[int, Collected]) -> str:
     """One table, a row per number of actors: with learning, the start, the wall time to
     ``episodes`` episodes, collected decisions/s and updates/s (over the episodes' seconds); with
-    updates off (``collecting``, actors >= 1), the decisions/s and their ratio to 1 actor's, and
-    as many plain processes' (``plain``) and their ratio to one's; then the 1 -> 2 line."""
+    updates off (``collecting``), the decisions/s, the time a decision takes with learning over
+    without (the cost of learning: target <= 2x) and, for actors >= 1, the decisions/s's ratio to 1
+    actor's; as many plain processes' (``plain``) and their ratio to one's; then the 1 -> 2 line."""
     lines = [f'learning with actors: {recipe}; {episodes} training episode(s) per run (no validation, '
              f'no checkpoints), a local Ray on loopback, torch threads: 1',
              f'{"actors":>6} {"start [s]":>9} {"wall [s]":>8} {"decisions/s":>11} {"updates/s":>9} | '
-             f'{"updates off: decisions/s":>24} {"x 1 actor":>9} | {"plain processes: decisions/s":>28} '
+             f'{"updates off: decisions/s":>24} {"learning cost":>13} {"x 1 actor":>9} | '
+             f'{"plain processes: decisions/s":>28} '
              f'{"x 1 process":>11}']
 
     def decisions_per_s(figures: dict[int, Collected], count: int) -> float:
         return figures[count].per_second(figures[count].decisions)
 
     def ratio(figures: dict[int, Collected], count: int) -> str:
-        if count not in figures or 1 not in figures:
+        if not count or count not in figures or 1 not in figures:
             return '-'
         return f'{decisions_per_s(figures, count) / decisions_per_s(figures, 1):.2f}x'
 
     def rate(figures: dict[int, Collected], count: int) -> str:
         return f'{decisions_per_s(figures, count):.0f}' if count in figures else '-'
 
+    def cost(count: int) -> str:
+        if count not in collecting:
+            return '-'
+        return f'{decisions_per_s(collecting, count) / decisions_per_s(learning, count):.2f}x'
+
     for count, run in learning.items():
         lines.append(f'{count:>6} {run.start:>9.1f} {run.wall:>8.1f} {rate(learning, count):>11} '
-                     f'{run.per_second(run.updates):>9.1f} | {rate(collecting, count):>24} {ratio(collecting, count):>9} | '
+                     f'{run.per_second(run.updates):>9.1f} | {rate(collecting, count):>24} {cost(count):>13} '
+                     f'{ratio(collecting, count):>9} | '
                      f'{rate(plain, count):>28} {ratio(plain, count):>11}')
     lines.append('start: Ray and the actors up (in the wall time); decisions/s, updates/s: over the episodes alone; '
-                 'plain processes: that many processes without Ray, each its share of the episodes, started together')
+                 'plain processes: that many processes without Ray, each its share of the episodes, started together; '
+                 'learning cost: the time of a decision with learning over without (updates off), target <= 2x')
     if 2 in collecting and 1 in collecting:
         lines.append(f'scaling from 1 to 2 actors, updates off: {ratio(collecting, 2)}; the ceiling, two plain '
                      f'processes over one: {ratio(plain, 2)} (target >= 1.6x)')

@@ -47,11 +47,11 @@ def test_an_actor_that_dies_is_restarted_and_the_run_ends_with_a_checkpoint(conf
     episodes = actors.ActorPool.episodes
 
     def kill_one_then_collect(pool, next_task):
+        pids = pool.pids()   # asked before: an actor answers between episodes only
         for finished in episodes(pool, next_task):
-            if not killed:
-                pid = pool.pids()[0]
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
+            if not killed:   # the actor that finished has just begun its next episode: killed in it
+                os.kill(pids[finished.actor], signal.SIGKILL)
+                killed.append(pids[finished.actor])
             yield finished
     monkeypatch.setattr(actors.ActorPool, 'episodes', kill_one_then_collect)
     trainer = Trainer(config, 'mdgqn', 'conditioned', 1, tmp_path / 'run', action_space='options')
@@ -145,21 +145,23 @@ def table_rows(table: str) -> dict[str, list[str]]:
             if words and words[0].isdigit()}
 
 
-def test_the_actor_table_gives_each_count_its_rates_and_the_scaling_against_its_ceiling():
+def test_the_actor_table_gives_each_count_its_rates_the_cost_of_learning_and_the_scaling_against_its_ceiling():
     from exit_decision.benchmarks import Collected, actor_table
 
     learning = {0: Collected(1000, 2000, 10.0), 1: Collected(1000, 1000, 8.0, start=5.0),
                 2: Collected(1000, 1000, 5.0, start=6.0)}
-    collecting = {1: Collected(1000, 0, 2.0), 2: Collected(1000, 0, 1.25)}
+    collecting = {0: Collected(1000, 0, 2.5), 1: Collected(1000, 0, 2.0), 2: Collected(1000, 0, 1.25)}
     plain = {1: Collected(1000, 0, 1.8), 2: Collected(1000, 0, 1.0)}
     table = actor_table('the recipe', 50, learning, collecting, plain)
     rows = table_rows(table)
-    assert rows['0'] == ['0', '0.0', '10.0', '100', '200.0', '-', '-', '-', '-'], 'in this process: nothing to scale'
-    assert rows['1'] == ['1', '5.0', '13.0', '125', '125.0', '500', '1.00x', '556', '1.00x'], 'wall = start + episodes'
-    assert rows['2'] == ['2', '6.0', '11.0', '200', '200.0', '800', '1.60x', '1000', '1.80x']
+    assert rows['0'] == ['0', '0.0', '10.0', '100', '200.0', '400', '4.00x', '-', '-', '-'], \
+        'in this process: the cost of learning, nothing to scale'
+    assert rows['1'] == ['1', '5.0', '13.0', '125', '125.0', '500', '4.00x', '1.00x', '556', '1.00x'], \
+        'wall = start + episodes; a decision with learning takes 4x one without'
+    assert rows['2'] == ['2', '6.0', '11.0', '200', '200.0', '800', '4.00x', '1.60x', '1000', '1.80x']
     assert 'scaling from 1 to 2 actors, updates off: 1.60x; the ceiling, two plain processes over one: 1.80x' in table
     without_one = table_rows(actor_table('the recipe', 50, {2: learning[2]}, {2: collecting[2]}, {2: plain[2]}))
-    assert without_one['2'][-4:] == ['800', '-', '1000', '-'], 'no ratio without 1 actor to compare with'
+    assert without_one['2'][-5:] == ['800', '4.00x', '-', '1000', '-'], 'no ratio without 1 actor to compare with'
 
 
 def test_bench_learning_with_actors_trains_and_collects_with_each_count_in_one_table(tmp_path, capsys):
@@ -174,5 +176,6 @@ def test_bench_learning_with_actors_trains_and_collects_with_each_count_in_one_t
     rows = table_rows(out)
     assert list(rows) == ['0', '1'], f'one row per count, in order: {out}'
     assert float(rows['0'][4]) > 0 and float(rows['1'][4]) > 0, 'the learner updated, here and from the actor'
-    assert float(rows['1'][1]) > 0 and rows['1'][6] == rows['1'][8] == '1.00x', 'start timed; 1 actor and 1 process'
-    assert float(rows['1'][5]) > 0 and float(rows['1'][7]) > 0, 'collected with updates off, by the actor and a process'
+    assert float(rows['1'][1]) > 0 and rows['1'][7] == rows['1'][9] == '1.00x', 'start timed; 1 actor and 1 process'
+    assert float(rows['1'][5]) > 0 and float(rows['1'][8]) > 0, 'collected with updates off, by the actor and a process'
+    assert all(float(rows[count][6].rstrip('x')) > 0 for count in rows), 'the cost of learning, here and on an actor'

@@ -106,6 +106,8 @@ def test_learning_values_the_selected_rows_as_the_forward_pass_does(shape):
     expected = net(features, adjacency, weights)[rows[:, 0], rows[:, 1]]
     values = net.cav_q_values(features, selected, weights)
     torch.testing.assert_close(values, expected)
+    stored = SelectedRows.of(adjacency, rows, adjacency.sum(-1, dtype=torch.int16))   # degrees as the replay keeps them
+    torch.testing.assert_close(net.cav_q_values(features, stored, weights), values)
     grads = torch.autograd.grad(values.sum(), list(net.parameters()), allow_unused=True)
     expected_grads = torch.autograd.grad(expected.sum(), list(net.parameters()), allow_unused=True)
     for grad, expected_grad in zip(grads, expected_grads):
@@ -204,6 +206,13 @@ def make_batch(next_q_rows_alive=True):
     batch = buffer.sample(np.array([0]))
     batch['rewards'] = scored_rewards(batch, weights_of_input(np.array([[1.0, 0, 0, 0, 1.0, 0]])), 'own')
     return batch
+
+
+def test_the_replay_gives_each_row_its_degree_with_the_adjacency():
+    batch = make_batch()
+    for prefix in ('', 'next_'):
+        np.testing.assert_array_equal(batch[f'{prefix}degrees'], batch[f'{prefix}adjacency'].sum(-1))
+        assert batch[f'{prefix}adjacency'].any(), 'a graph with edges'
 
 
 class FixedNet(torch.nn.Module):

@@ -162,8 +162,10 @@ class ActorPool:
     def episodes(self, next_task) -> Iterator[Finished]:
         """Keeps every live actor on an episode: ``next_task()`` gives (seed, mode, epsilon of the
         schedule) or None when no more may start; yields each episode as it finishes, until none
-        is running. The episode of an actor that died goes to it again once Ray restarted it, or,
-        past its restart limit, to the next free actor."""
+        is running. An actor gets its next episode before its last is yielded, on the weights of
+        the last broadcast: collection and learning overlap (Ape-X's actors do not wait either).
+        The episode of an actor that died goes to it again once Ray restarted it, or, past its
+        restart limit, to the next free actor."""
         import ray
         running: dict = {}
         idle = list(range(len(self.actors)))
@@ -201,8 +203,8 @@ class ActorPool:
                     raise RuntimeError('every actor died past actors.max_restarts') from None
                 continue
             idle.append(index)
+            feed()   # its next episode starts now: it plays while the learner learns from this one
             yield Finished(index, epsilon, result)
-            feed()
 
     def _restarted(self, index: int, timeout: float = 120.0) -> bool:
         """Wait for Ray to restart actor ``index`` after its process died: True once it answers

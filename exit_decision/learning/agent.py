@@ -59,37 +59,38 @@ class GraphQAgent:
         return q.masked_fill(~mask, -torch.inf).argmax(-1)
 
     def td_targets(self, batch: dict[str, torch.Tensor], rows: torch.Tensor) -> torch.Tensor:
-        b, r = rows[:, 0], rows[:, 1]
-        next_mask = batch['next_masks'][b, r]
-        alive = batch['alive'][b, r] & next_mask.any(-1)
+        b = rows[:, 0]
+        next_rows = SelectedRows.of(batch['next_adjacency'], rows, batch.get('next_degrees'))
+        next_mask = next_rows.at(batch['next_masks'])
+        alive = next_rows.at(batch['alive']) & next_mask.any(-1)
         weights = batch.get('weights')
-        next_rows = SelectedRows.of(batch['next_adjacency'], rows)
         target_q = self.target.cav_q_values(batch['next_features'], next_rows, weights)
         if 'prior_actions' in batch:   # bootstrap on the prior's option (its route option: always allowed)
-            best = batch['prior_actions'][b]
+            best = batch['prior_actions'].index_select(0, b)
         else:
             chooser = self.online.cav_q_values(batch['next_features'], next_rows, weights) \
                 if self.settings.double else target_q
             best = self.masked_argmax(chooser, next_mask)
         if 'continuing' in batch:   # options: a row whose option goes on is valued by that option
-            best = torch.where(batch['continuing'][b, r], batch['actions'][b, r], best)
+            best = torch.where(next_rows.at(batch['continuing']), next_rows.at(batch['actions']), best)
         bootstrap = target_q.gather(1, best.unsqueeze(1)).squeeze(1)
         bootstrap = torch.where(alive, bootstrap, torch.zeros_like(bootstrap))
-        return batch['rewards'][b, r] + batch['discounts'][b] * bootstrap
+        return next_rows.at(batch['rewards']) + batch['discounts'].index_select(0, b) * bootstrap
 
     def losses(self, batch: dict[str, torch.Tensor], demo: torch.Tensor,
                sample_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(TD loss, margin loss, |TD error| per batch element): means over the acting rows
         (TD: weighted by their transition's importance weight; margin: demonstration rows only)."""
         rows = torch.nonzero(batch['actions'] >= 0)
-        b, r = rows[:, 0], rows[:, 1]
-        actions = batch['actions'][b, r]
-        q = self.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows), batch.get('weights'))
+        b = rows[:, 0]
+        selected = SelectedRows.of(batch['adjacency'], rows, batch.get('degrees'))
+        actions = selected.at(batch['actions'])
+        q = self.online.cav_q_values(batch['features'], selected, batch.get('weights'))
         q_taken = q.gather(1, actions.unsqueeze(1)).squeeze(1)
         with torch.no_grad():
             targets = self.td_targets(batch, rows)
         per_row = nn.functional.smooth_l1_loss(q_taken, targets, reduction='none')
-        td = (per_row * sample_weights[b]).mean() if sample_weights is not None else per_row.mean()
+        td = (per_row * sample_weights.index_select(0, b)).mean() if sample_weights is not None else per_row.mean()
         errors = torch.zeros(len(demo), dtype=q.dtype).scatter_reduce_(
             0, b, (q_taken - targets).abs().detach(), 'amax', include_self=False)
         demo_rows = demo[b]
@@ -97,7 +98,7 @@ class GraphQAgent:
             return td, torch.zeros((), dtype=td.dtype), errors
         margins = torch.full_like(q, self.settings.margin)
         margins.scatter_(1, actions.unsqueeze(1), 0.0)
-        allowed = batch['masks'][b, r]
+        allowed = selected.at(batch['masks'])
         best = (q + margins).masked_fill(~allowed, -torch.inf).max(1).values
         margin_loss = (best - q_taken)[demo_rows].mean()
         return td, margin_loss, errors

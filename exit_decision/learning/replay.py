@@ -135,6 +135,8 @@ class ReplayBuffer:
         self.next_features = np.zeros((capacity, n, f), np.float32)
         self.adjacency = np.zeros((capacity, n, packed_n), np.uint8)
         self.next_adjacency = np.zeros((capacity, n, packed_n), np.uint8)
+        self.degrees = np.zeros((capacity, n), np.int16)   # the adjacency's row sums, summed once here, not per batch
+        self.next_degrees = np.zeros((capacity, n), np.int16)
         self.actions = np.full((capacity, n), NO_ACTION, np.int16)
         self.masks = np.zeros((capacity, n, packed_a), np.uint8)
         self.next_masks = np.zeros((capacity, n, packed_a), np.uint8)
@@ -154,8 +156,10 @@ class ReplayBuffer:
         """Store a transition (over the oldest when full); returns its index."""
         i = self._next
         self.features[i], self.next_features[i] = transition.features, transition.next_features
-        self.adjacency[i] = np.packbits(transition.adjacency.astype(bool), axis=-1)
-        self.next_adjacency[i] = np.packbits(transition.next_adjacency.astype(bool), axis=-1)
+        for packed, degrees, adjacency in ((self.adjacency, self.degrees, transition.adjacency),
+                                           (self.next_adjacency, self.next_degrees, transition.next_adjacency)):
+            edges = adjacency.astype(bool)
+            packed[i], degrees[i] = np.packbits(edges, axis=-1), edges.sum(-1)
         self.actions[i] = transition.actions
         self.masks[i] = np.packbits(transition.masks, axis=-1)
         self.next_masks[i] = np.packbits(transition.next_masks, axis=-1)
@@ -173,6 +177,7 @@ class ReplayBuffer:
             'features': self.features[indices], 'next_features': self.next_features[indices],
             'adjacency': np.unpackbits(self.adjacency[indices], axis=-1, count=n),
             'next_adjacency': np.unpackbits(self.next_adjacency[indices], axis=-1, count=n),
+            'degrees': self.degrees[indices], 'next_degrees': self.next_degrees[indices],
             'actions': self.actions[indices].astype(np.int64),
             'masks': np.unpackbits(self.masks[indices], axis=-1, count=a).astype(bool),
             'next_masks': np.unpackbits(self.next_masks[indices], axis=-1, count=a).astype(bool),

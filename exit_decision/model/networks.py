@@ -173,14 +173,16 @@ class GraphQNetwork(nn.Module):
         those rows (equal up to rounding) without its work on rows nothing depends on. The
         encoder runs on the vehicles present only (a quarter of a batch's padded rows); the
         weights enter its first layer as their own term, once per graph, not copied to every
-        row; the GCN aggregates into the selected rows only; the head runs on them only."""
+        row; the GCN aggregates into the selected rows only, before its linear map (a third of
+        the rows); the head runs on them only."""
         self.check_weights(weights)
         graph_of_row = selected.rows[:, 0]
         if not self.shape.encoder:   # the rows' inputs (with the weights) are the code
             return self.q_of(self.embed(features, selected.adjacency, weights)[graph_of_row, selected.rows[:, 1]])
-        inputs = features[selected.present]
+        inputs = features.flatten(0, 1).index_select(0, selected.present)
         if self.shape.adjacency_input:
-            inputs = torch.cat([inputs, selected.adjacency[selected.present].to(inputs.dtype)], dim=-1)
+            inputs = torch.cat([inputs, selected.adjacency.flatten(0, 1).index_select(0, selected.present).to(inputs.dtype)],
+                               dim=-1)
         first, *rest = self.encoder
         code = functional.linear(inputs, first.weight[:, :inputs.shape[-1]], first.bias)
         if self.conditioned:
@@ -190,8 +192,11 @@ class GraphQNetwork(nn.Module):
         for layer in rest:
             code = layer(code)
         parts = [code.index_select(0, selected.place)]
-        if self.shape.gcn:
-            parts.append(torch.relu(torch.sparse.mm(selected.aggregation.to(code.dtype), self.gcn.linear(code))))
+        if self.shape.gcn:   # Â(HW + b) = (ÂH)W + (Â1)b: the linear map on the selected rows only
+            linear = self.gcn.linear
+            aggregated = torch.sparse.mm(selected.aggregation.to(code.dtype), code)
+            parts.append(torch.relu(torch.addmm(torch.outer(selected.aggregation_sums.to(code.dtype), linear.bias),
+                                                aggregated, linear.weight.t())))
         if self.conditioned:
             parts.append(weights.index_select(0, graph_of_row))
         return self.q_of(torch.cat(parts, dim=-1))
@@ -204,9 +209,12 @@ class SelectedRows:
     by every network valuing the same rows (an update's target and online networks on the next
     states)."""
     rows: torch.Tensor
-    #: (B, N, N) as given
+    #: (R,) the same rows as indices of the batch's B x N rows
+    flat: torch.Tensor
+    #: (B, N, N) of 0 and 1, as the replay gives it
     adjacency: torch.Tensor
-    #: (B, N) the rows the encoder runs on: a vehicle (an edge) or selected
+    #: (P,) the rows the encoder runs on (a vehicle: an edge; or selected), as indices of the
+    #: batch's B x N rows (flat indices: ``index_select`` is several times faster than masks)
     present: torch.Tensor
     #: (P,) the batch index of each present row, in ``present``'s order
     present_graph: torch.Tensor
@@ -214,25 +222,34 @@ class SelectedRows:
     place: torch.Tensor
     #: (R, P) sparse: the selected rows of D^-1/2 A D^-1/2, over the present rows
     aggregation: torch.Tensor
+    #: (R,) each selected row's sum of ``aggregation`` (what the GCN's bias is scaled by)
+    aggregation_sums: torch.Tensor
 
     @classmethod
-    def of(cls, adjacency: torch.Tensor, rows: torch.Tensor) -> SelectedRows:
-        graph, row = rows[:, 0], rows[:, 1]
-        degree = adjacency.sum(-1, dtype=torch.float32)
-        present = degree > 0
-        present[graph, row] = True
-        present_graph, present_row = present.nonzero(as_tuple=True)
-        place = torch.full(present.shape, -1, dtype=torch.long)
-        place[present_graph, present_row] = torch.arange(len(present_graph))
-        inverse_sqrt = inverse_sqrt_degree(degree)
-        selected_adjacency = adjacency[graph, row]   # (R, N)
+    def of(cls, adjacency: torch.Tensor, rows: torch.Tensor, degree: torch.Tensor | None = None) -> SelectedRows:
+        """``degree``: the rows' degrees (B, N), when known (the replay stores them; they are
+        ``adjacency``'s row sums), else summed here."""
+        n = adjacency.shape[1]
+        degree = adjacency.sum(-1, dtype=torch.float32) if degree is None else degree.to(torch.float32)
+        selected = rows[:, 0] * n + rows[:, 1]   # flat
+        present = (degree > 0).reshape(-1).index_fill_(0, selected, True)
+        place = present.cumsum(0) - 1             # a present row's place among the present rows
+        present_rows = present.nonzero().squeeze(1)
+        inverse_sqrt = inverse_sqrt_degree(degree).reshape(-1)
+        selected_adjacency = adjacency.reshape(-1, n).index_select(0, selected)   # (R, N)
         edge, neighbour = selected_adjacency.nonzero(as_tuple=True)   # (selected row, neighbour), sorted
-        values = (inverse_sqrt[graph, row][edge] * selected_adjacency[edge, neighbour].to(torch.float32)
-                  * inverse_sqrt[graph[edge], neighbour])
-        aggregation = torch.sparse_coo_tensor(   # sorted, unique (edge, place) pairs: coalesced
-            torch.stack([edge, place[graph[edge], neighbour]]), values, (len(rows), len(present_graph)),
+        neighbour = rows[:, 0].index_select(0, edge) * n + neighbour     # flat
+        values = inverse_sqrt.index_select(0, selected).index_select(0, edge) * inverse_sqrt.index_select(0, neighbour)
+        aggregation = torch.sparse_coo_tensor(   # sorted, unique (edge, place) pairs: coalesced; A's entries are 1
+            torch.stack([edge, place.index_select(0, neighbour)]), values, (len(rows), len(present_rows)),
             is_coalesced=True, check_invariants=False)
-        return cls(rows, adjacency, present, present_graph, place[graph, row], aggregation)
+        sums = torch.zeros(len(rows)).index_add_(0, edge, values)
+        return cls(rows, selected, adjacency, present_rows, present_rows // n, place.index_select(0, selected),
+                   aggregation, sums)
+
+    def at(self, tensor: torch.Tensor) -> torch.Tensor:
+        """``tensor`` (B, N, ...) at the selected rows: ``tensor[rows[:, 0], rows[:, 1]]``."""
+        return tensor.flatten(0, 1).index_select(0, self.flat)
 
 
 class OneGraphForward:
