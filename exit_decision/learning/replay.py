@@ -118,10 +118,12 @@ def scored_rewards(batch: dict[str, np.ndarray], multipliers: np.ndarray, credit
     """(B, N) per-row rewards of a sampled batch under per-element multipliers of the reward
     vector (B, 4, 2; ``reward.weights_of_input`` of a mode's weights): each row's own credit
     (``credit='own'``) or the global return for every row."""
+    size, rows = batch['returns'].shape[:2]
+    multipliers = np.asarray(multipliers, np.float32).reshape(size, 8, 1)   # one matrix product a batch element
     if credit == 'own':
-        return (batch['returns'] * multipliers[:, None]).sum(axis=(-2, -1)).astype(np.float32)
-    rewards = (batch['global_returns'] * multipliers).sum(axis=(-2, -1))
-    return np.repeat(rewards[:, None], batch['returns'].shape[1], axis=1).astype(np.float32)
+        return (batch['returns'].reshape(size, rows, 8) @ multipliers)[..., 0]
+    rewards = (batch['global_returns'].reshape(size, 1, 8) @ multipliers)[..., 0]
+    return np.repeat(rewards, rows, axis=1)
 
 
 class ReplayBuffer:
@@ -179,8 +181,8 @@ class ReplayBuffer:
             'next_adjacency': np.unpackbits(self.next_adjacency[indices], axis=-1, count=n),
             'degrees': self.degrees[indices], 'next_degrees': self.next_degrees[indices],
             'actions': self.actions[indices].astype(np.int64),
-            'masks': np.unpackbits(self.masks[indices], axis=-1, count=a).astype(bool),
-            'next_masks': np.unpackbits(self.next_masks[indices], axis=-1, count=a).astype(bool),
+            'masks': np.unpackbits(self.masks[indices], axis=-1, count=a).view(bool),   # 0 and 1: bools as they are
+            'next_masks': np.unpackbits(self.next_masks[indices], axis=-1, count=a).view(bool),
             'returns': self.returns[indices], 'global_returns': self.global_returns[indices],
             'discounts': self.discounts[indices],
             'alive': self.alive[indices], 'continuing': self.continuing[indices],
