@@ -8,6 +8,7 @@ import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
+from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 
 from exit_decision.config import default_config_dir, load_project
@@ -69,6 +70,76 @@ def test_the_intake_refuses_what_is_too_large_or_undecodable_and_counts_it_by_to
         assert diagnostics.counters['dropped_episode_events_undecodable'] == 1
     finally:
         probe.close()
+
+
+def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_publishers_gid():
+    """``take.SerializedTake`` (rcl's take through ctypes) against what rclpy knows: the same bytes
+    as rclpy's own take, consecutive sequence numbers, a source time within the publish call and
+    the gid the graph lists for the publisher (so the structures' fields sit where rcl puts them)."""
+    import time
+
+    from rclpy.qos import QoSProfile
+
+    from exit_decision.ros.take import SerializedTake
+    probe = ProbeNode('serialized_take_test')
+    try:
+        qos = QoSProfile(depth=10)
+        subscription = probe.node.create_subscription(EpisodeEvent, '/serialized_take_test', lambda *_: None, qos,
+                                                      raw=True)
+        publisher = probe.node.create_publisher(EpisodeEvent, '/serialized_take_test', qos)
+        assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 10)
+        messages = [serialize_message(EpisodeEvent(episode=episode)) for episode in (7, 8)]
+        before = time.time_ns()
+        for message in messages:
+            publisher.publish(message)
+        after = time.time_ns()
+        (gid,) = [bytes(info.endpoint_gid[:16]) for info in probe.node.get_publishers_info_by_topic(
+            '/serialized_take_test')]
+        deadline = time.monotonic() + 10
+        with subscription.handle:
+            while (first := subscription.handle.take_message(EpisodeEvent, True)) is None and time.monotonic() < deadline:
+                time.sleep(0.01)
+            while (second := SerializedTake()(subscription)) is None and time.monotonic() < deadline:
+                time.sleep(0.01)
+        assert (first[0], second[0]) == tuple(messages)
+        assert second[1]['publication_sequence_number'] == first[1]['publication_sequence_number'] + 1
+        assert before <= second[1]['source_timestamp'] <= after <= second[1]['received_timestamp'] + 10 ** 9
+        assert second[1]['publisher_gid'] == gid
+    finally:
+        probe.close()
+
+
+def test_the_intake_counts_what_a_full_queue_overwrote_for_each_of_two_publishers():
+    """Two publishers (two processes' worth: two participants) on one topic, a reader queue of 5:
+    after each publisher's first message is taken, 40 more from each arrive before the node takes
+    again; what the queue overwrote shows as gaps in each publisher's sequence and is counted, so
+    taken + dropped = sent."""
+    from rclpy.qos import QoSProfile
+
+    config = load_project(default_config_dir())
+    topic, qos = '/intake_overwrite_test', QoSProfile(depth=5)
+    listener, senders = ProbeNode('intake_overwrite_test'), [ProbeNode(f'overwriter_{i}') for i in range(2)]
+    try:
+        diagnostics = Diagnostics(listener.node, 'intake_overwrite_test')
+        Intake(listener.node, diagnostics, limits_of(config)).subscribe(EpisodeEvent, topic, lambda msg: None, qos)
+        publishers = [sender.node.create_publisher(EpisodeEvent, topic, QoSProfile(depth=100)) for sender in senders]
+        assert listener.spin_until(lambda: all(p.get_subscription_count() > 0 for p in publishers), 10)
+        message = serialize_message(EpisodeEvent(episode=1))
+        for publisher in publishers:
+            publisher.publish(message)
+        assert listener.spin_until(lambda: diagnostics.counters.get('received_intake_overwrite_test') == 2, 10)
+        for _ in range(40):
+            for publisher in publishers:
+                publisher.publish(message)
+        for publisher in publishers:
+            assert publisher.wait_for_all_acked(Duration(seconds=5))
+        listener.spin_until(lambda: False, 0.5)
+        counters = diagnostics.counters
+        assert counters['received_intake_overwrite_test'] < 82, 'the queue overwrote some'
+        assert counters['received_intake_overwrite_test'] + counters['dropped_intake_overwrite_test'] == 82, counters
+    finally:
+        for probe in (listener, *senders):
+            probe.close()
 
 
 def test_the_recorder_refuses_a_message_over_the_limit_counts_it_and_the_bag_says_so(tmp_path):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 
@@ -15,6 +16,7 @@ from exit_decision.ros.dds_defaults import apply_dds_defaults
 apply_dds_defaults()
 
 import rclpy  # noqa: E402
+from rclpy.callback_groups import CallbackGroup  # noqa: E402
 from rclpy.exceptions import InvalidHandle  # noqa: E402
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
@@ -24,18 +26,45 @@ from rclpy.subscription import Subscription  # noqa: E402
 
 from exit_decision.config import ConfigError  # noqa: E402
 from exit_decision.errors import ParameterError, PolicyError  # noqa: E402
+from exit_decision.ros.take import SerializedTake  # noqa: E402
+
+
+class TakenByTheWaiter(CallbackGroup):
+    """The callback group of the stack's subscriptions (``intake.Intake``): rclpy's executor
+    leaves them alone, so every message of theirs is taken by ``take_waiting``, with its
+    publisher's gid (a message the executor took would come without it)."""
+
+    def can_execute(self, entity) -> bool:
+        return False
+
+    def beginning_execution(self, entity) -> bool:
+        return False
+
+    def ending_execution(self, entity) -> None:
+        pass
+
+
+_takes = threading.local()   # a thread's SerializedTake (its buffer), made on its first raw take
 
 
 def take_waiting(subscription, limit: int | None = None) -> int:
     """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
     its callback now, without the executor, and say how many (a flood on the topic costs each
-    message its decoding, or its header read, and the check that refuses it)."""
+    message its decoding, or its header read, and the check that refuses it). A raw
+    subscription's messages are taken with their publisher's gid (``take.SerializedTake``)."""
     with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
+    if subscription.raw:
+        if not hasattr(_takes, 'take'):
+            _takes.take = SerializedTake()
+        take = _takes.take
+    else:
+        def take(subscription):
+            return subscription.handle.take_message(subscription.msg_type, subscription.raw)
     taken = 0
     try:
         with subscription.handle:
             while limit is None or taken < limit:
-                message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                message = take(subscription)
                 if message is None:
                     break
                 subscription.callback(*(message if with_info else message[:1]))

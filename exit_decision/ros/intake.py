@@ -4,9 +4,10 @@ message dropped is counted by cause on /diagnostics.
 
 Each subscription takes the serialized message (rclpy ``raw=True``) and, in this order:
 - counts it (``received_<topic>``);
-- counts the messages lost before the node took them (``dropped_<topic>``: gaps in the
-  publisher's sequence numbers, while the topic has one publisher; with several rclpy does not
-  say whose a message is);
+- counts the messages lost before the node took them (``dropped_<topic>``: gaps in each
+  publisher's sequence numbers; the node takes its messages with their publisher's gid,
+  ``take.SerializedTake``, since rclpy's take does not say whose a message is). A message lost
+  before a publisher's first one taken, or after its last, shows no gap and is not counted;
 - refuses one over the topic's size limit unread (``dropped_<topic>_too_large``; the limits:
   ``messages/sizes.py``, from the graph's N and the message layout);
 - for a typed callback, decodes it (rclpy's ``deserialize_message``) and refuses bytes that are
@@ -32,7 +33,14 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
 
 from exit_decision.ros.diagnostics import Diagnostics
+from exit_decision.ros.executor import TakenByTheWaiter
 from exit_decision.ros.messages.sizes import DEFAULT_LIMIT, limits_of
+
+#: rmw's RMW_MESSAGE_INFO_SEQUENCE_NUMBER_UNSUPPORTED (UINT64_MAX)
+SEQUENCE_NUMBER_UNSUPPORTED = 2 ** 64 - 1
+#: publishers whose last sequence number a subscription keeps (the most recent): the intake's
+#: memory stays bounded however many publishers come and go
+MAX_PUBLISHERS = 256
 
 
 def short(topic: str) -> str:
@@ -45,6 +53,7 @@ class Intake:
 
     def __init__(self, node: Node, diagnostics: Diagnostics, limits: Mapping[str, int]):
         self.node, self.diagnostics, self.limits = node, diagnostics, dict(limits)
+        self.callback_group = TakenByTheWaiter()
 
     @classmethod
     def of_config(cls, node: Node, diagnostics: Diagnostics, config) -> Intake:
@@ -63,19 +72,18 @@ class Intake:
         (``received_<topic>``), before any check."""
         name, limit, diagnostics = short(topic), self.limit(topic), self.diagnostics
         lost, received = f'dropped_{name}', f'received_{name}'
-        last: dict[str, int] = {}
-        subscription = None
+        last: dict[bytes, int] = {}   # publisher gid -> the sequence number of its last message taken
 
         def on_message(data: bytes, info) -> None:
             diagnostics.count(received)
-            number = info.get('publication_sequence_number')
-            if number is not None and subscription.get_publisher_count() == 1:
-                previous = last.get('number')
+            number, gid = info.get('publication_sequence_number'), info.get('publisher_gid')
+            if gid is not None and number is not None and number != SEQUENCE_NUMBER_UNSUPPORTED:
+                previous = last.pop(gid, None)   # popped and put back: the dict keeps the latest publishers last
                 if previous is not None and number > previous + 1:
                     diagnostics.count(lost, number - previous - 1)
-                last['number'] = number
-            else:
-                last.clear()
+                last[gid] = number
+                if len(last) > MAX_PUBLISHERS:
+                    del last[next(iter(last))]
             if len(data) > limit:
                 diagnostics.drop(topic, 'too_large', f'a message on {topic}',
                                  f'{len(data)} bytes, more than its limit of {limit}')
@@ -89,5 +97,5 @@ class Intake:
                 diagnostics.drop(topic, 'undecodable', f'a message on {topic}', f'not a {msg_type.__name__}: {error}')
                 return
             callback(message, info) if with_info else callback(message)
-        subscription = self.node.create_subscription(msg_type, topic, on_message, qos, raw=True)
-        return subscription
+        return self.node.create_subscription(msg_type, topic, on_message, qos, raw=True,
+                                             callback_group=self.callback_group)

@@ -79,7 +79,8 @@ class FloodRun:
     def uncounted(self, phase: Phase) -> dict[str, float]:
         """Node -> flood messages of the phase it did not count (0: every one): oversized, those
         it did not count as too large; stale, those it neither dropped with a cause nor recorded
-        (on a topic whose stale messages are taken, not dropped: those it did not take). The
+        (on a topic whose stale messages are taken, not dropped: those it did not take); in both,
+        those it counted as lost before it took them (gaps in a publisher's sequence). The
         stack's own messages of the phase count too, so a loss smaller than them goes unseen."""
         from exit_decision.ros.diagnostics import CAUSES, drop_key
         name = phase.topic.rsplit('/', 1)[-1]
@@ -93,6 +94,7 @@ class FloodRun:
             else:
                 got = sum(counters.get(drop_key(phase.topic, cause), 0.0) for cause in CAUSES)
                 got += counters.get(f'recorded_{name}', 0.0)
+            got += counters.get(f'dropped_{name}', 0.0)
             missing[node] = max(phase.sent - got, 0.0)
         return missing
 

@@ -1,0 +1,84 @@
+"""Taking a serialized message with the id of its publisher (rcl's ``rcl_take_serialized_message``).
+
+rclpy's take gives a message's info without the publisher's gid (Jazzy's dict holds the two
+timestamps and the two sequence numbers only), so with several publishers on a topic a node
+could not tell whose sequence a number belongs to, and the messages a full queue overwrote
+went uncounted. rcl's own take fills the whole ``rmw_message_info_t``, gid included; this module
+calls it through ctypes on the subscription rclpy made (its ``handle.pointer``), on the libraries
+rclpy has loaded already. The structures mirror rmw/types.h and rcutils/types/uint8_array.h of
+Jazzy (``RMW_GID_STORAGE_SIZE`` 16); a test takes through it and checks each field against
+rclpy's own take.
+"""
+from __future__ import annotations
+
+import ctypes
+
+RCL_RET_OK = 0
+RMW_GID_STORAGE_SIZE = 16
+INITIAL_CAPACITY = 4096   # [bytes] the middleware grows the buffer to a larger message
+
+
+class _Allocator(ctypes.Structure):
+    _fields_ = [('allocate', ctypes.c_void_p), ('deallocate', ctypes.c_void_p), ('reallocate', ctypes.c_void_p),
+                ('zero_allocate', ctypes.c_void_p), ('state', ctypes.c_void_p)]
+
+
+class _SerializedMessage(ctypes.Structure):   # rcutils_uint8_array_t
+    _fields_ = [('buffer', ctypes.POINTER(ctypes.c_uint8)), ('buffer_length', ctypes.c_size_t),
+                ('buffer_capacity', ctypes.c_size_t), ('allocator', _Allocator)]
+
+
+class _Gid(ctypes.Structure):
+    _fields_ = [('implementation_identifier', ctypes.c_char_p), ('data', ctypes.c_uint8 * RMW_GID_STORAGE_SIZE)]
+
+
+class _MessageInfo(ctypes.Structure):
+    _fields_ = [('source_timestamp', ctypes.c_int64), ('received_timestamp', ctypes.c_int64),
+                ('publication_sequence_number', ctypes.c_uint64), ('reception_sequence_number', ctypes.c_uint64),
+                ('publisher_gid', _Gid), ('from_intra_process', ctypes.c_bool)]
+
+
+_libraries: tuple | None = None
+
+
+def _load() -> tuple:
+    """rcl and rcutils as rclpy loaded them (dlopen by soname finds the loaded ones)."""
+    global _libraries
+    if _libraries is None:
+        import rclpy.impl.implementation_singleton  # noqa: F401 (loads rcl and rcutils)
+        rcutils, rcl = ctypes.CDLL('librcutils.so'), ctypes.CDLL('librcl.so')
+        rcutils.rcutils_get_default_allocator.restype = _Allocator
+        rcutils.rcutils_uint8_array_init.argtypes = [ctypes.POINTER(_SerializedMessage), ctypes.c_size_t,
+                                                     ctypes.POINTER(_Allocator)]
+        rcutils.rcutils_uint8_array_init.restype = ctypes.c_int
+        rcl.rcl_take_serialized_message.argtypes = [ctypes.c_void_p, ctypes.POINTER(_SerializedMessage),
+                                                    ctypes.POINTER(_MessageInfo), ctypes.c_void_p]
+        rcl.rcl_take_serialized_message.restype = ctypes.c_int32
+        _libraries = rcutils, rcl
+    return _libraries
+
+
+class SerializedTake:
+    """Takes the serialized messages of one rclpy subscription with their publisher's gid; one
+    buffer, kept and grown by the middleware, copied into ``bytes`` per message."""
+
+    def __init__(self):
+        rcutils, self._rcl = _load()
+        self._allocator = rcutils.rcutils_get_default_allocator()
+        self._message, self._info = _SerializedMessage(), _MessageInfo()
+        if rcutils.rcutils_uint8_array_init(ctypes.byref(self._message), INITIAL_CAPACITY,
+                                            ctypes.byref(self._allocator)) != RCL_RET_OK:
+            raise MemoryError('rcutils could not allocate a serialized message buffer')
+
+    def __call__(self, subscription) -> tuple[bytes, dict] | None:
+        """The next message waiting on ``subscription`` (the caller holds its handle) and its info
+        (rclpy's keys and ``publisher_gid``, 16 bytes), or None when none waits."""
+        message, info = self._message, self._info
+        if self._rcl.rcl_take_serialized_message(subscription.handle.pointer, ctypes.byref(message),
+                                                 ctypes.byref(info), None) != RCL_RET_OK:
+            return None
+        return ctypes.string_at(message.buffer, message.buffer_length), {
+            'source_timestamp': info.source_timestamp, 'received_timestamp': info.received_timestamp,
+            'publication_sequence_number': info.publication_sequence_number,
+            'reception_sequence_number': info.reception_sequence_number,
+            'publisher_gid': bytes(info.publisher_gid.data)}
