@@ -161,12 +161,13 @@ def _update_parts(trainer, count: int = 100) -> dict[str, float]:
         batch = {key: torch.from_numpy(value) for key, value in sampled.arrays.items()}
         marks = [time.perf_counter()]
         rows = torch.nonzero(batch['actions'] >= 0)
-        q = agent.online.cav_q_values(batch['features'], SelectedRows.of(batch['adjacency'], rows, batch['degrees']), batch.get('weights'))
+        selected = SelectedRows.of(batch['adjacency'], rows, batch['degrees'])
+        q = agent.online.cav_q_values(batch['features'], selected, batch.get('weights'))
         marks.append(time.perf_counter())
         with torch.no_grad():
             targets = agent.td_targets(batch, rows)
         marks.append(time.perf_counter())
-        taken = q.gather(1, batch['actions'][rows[:, 0], rows[:, 1]].unsqueeze(1)).squeeze(1)
+        taken = q.gather(1, selected.at(batch['actions']).unsqueeze(1)).squeeze(1)
         loss = nn.functional.smooth_l1_loss(taken, targets)
         agent.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -215,7 +216,7 @@ def bench_actors(config_dir: Path | None, scenario_override, overrides, seed: in
     alone = config.model_copy(update={'training': config.training.model_copy(update={'updates_per_decision': 0})})
     collecting = {count: timed_episodes(alone, *run, actors=count) for count in counts}
     plain = {count: plain_processes(alone, *run, count=count) for count in counts if count}
-    return actor_table(f'{label}, updates_per_decision {config.training.of_method(algorithm).updates_per_decision}',
+    return actor_table(f'{label}, updates_per_decision {t.updates_per_decision}',
                        episodes, learning, collecting, plain)
 
 

@@ -97,9 +97,11 @@ def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_
             '/serialized_take_test')]
         deadline = time.monotonic() + 10
         with subscription.handle:
-            while (first := subscription.handle.take_message(EpisodeEvent, True)) is None and time.monotonic() < deadline:
+            take = SerializedTake()
+            while (first := subscription.handle.take_message(EpisodeEvent, True)) is None \
+                    and time.monotonic() < deadline:
                 time.sleep(0.01)
-            while (second := SerializedTake()(subscription)) is None and time.monotonic() < deadline:
+            while (second := take(subscription)) is None and time.monotonic() < deadline:
                 time.sleep(0.01)
         assert (first[0], second[0]) == tuple(messages)
         assert second[1]['publication_sequence_number'] == first[1]['publication_sequence_number'] + 1

@@ -181,8 +181,8 @@ class GraphQNetwork(nn.Module):
             return self.q_of(self.embed(features, selected.adjacency, weights)[graph_of_row, selected.rows[:, 1]])
         inputs = features.flatten(0, 1).index_select(0, selected.present)
         if self.shape.adjacency_input:
-            inputs = torch.cat([inputs, selected.adjacency.flatten(0, 1).index_select(0, selected.present).to(inputs.dtype)],
-                               dim=-1)
+            rows = selected.adjacency.flatten(0, 1).index_select(0, selected.present)
+            inputs = torch.cat([inputs, rows.to(inputs.dtype)], dim=-1)
         first, *rest = self.encoder
         code = functional.linear(inputs, first.weight[:, :inputs.shape[-1]], first.bias)
         if self.conditioned:

@@ -12,6 +12,7 @@ rclpy's own take.
 from __future__ import annotations
 
 import ctypes
+import importlib
 
 RCL_RET_OK = 0
 RMW_GID_STORAGE_SIZE = 16
@@ -45,7 +46,7 @@ def _load() -> tuple:
     """rcl and rcutils as rclpy loaded them (dlopen by soname finds the loaded ones)."""
     global _libraries
     if _libraries is None:
-        import rclpy.impl.implementation_singleton  # noqa: F401 (loads rcl and rcutils)
+        importlib.import_module('rclpy.impl.implementation_singleton')   # loads rcl and rcutils
         rcutils, rcl = ctypes.CDLL('librcutils.so'), ctypes.CDLL('librcl.so')
         rcutils.rcutils_get_default_allocator.restype = _Allocator
         rcutils.rcutils_uint8_array_init.argtypes = [ctypes.POINTER(_SerializedMessage), ctypes.c_size_t,
