@@ -127,12 +127,16 @@ def fresh_points(rows: Sequence[dict]) -> list[dict]:
 
 
 def fresh_summary(rows: Sequence[dict]) -> dict[str, float]:
-    """Of each point's best deviation: its first gain (the biased maximum) and its mean gain on the
-    fresh futures, averaged over points with a 95% interval, and their median (one future with a
-    collision moves the mean by itself); the share of points whose fresh gain is resolved above 0
-    (t interval over the futures); and how much the prior's own return moves between futures (0
-    would mean the futures are not fresh)."""
-    points = fresh_points(rows)
+    """``points_summary`` of ``fresh_future_gains``'s rows."""
+    return points_summary(fresh_points(rows))
+
+
+def points_summary(points: Sequence[dict]) -> dict[str, float]:
+    """Of each point's best deviation (``fresh_points``): its first gain (the biased maximum) and
+    its mean gain on the fresh futures, averaged over points with a 95% interval, and their median
+    (one future with a collision moves the mean by itself); the share of points whose fresh gain is
+    resolved above 0 (t interval over the futures); and how much the prior's own return moves
+    between futures (0 would mean the futures are not fresh)."""
     means = [point['fresh'][0] for point in points]
     mean, low, high = t_interval(means)
     return {'points': len(points), 'first_mean': float(np.mean([point['first'] for point in points])),

@@ -278,7 +278,7 @@ def action_distributions(evaluation_dir: Path, out: Path) -> list[Path]:
 def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
     """Per mode of ``gains_dir``/fresh_futures.csv: each point's best option (rank 0), its first
     gain (x) against its mean gain on the fresh futures (y, 95% interval over the futures)."""
-    from exit_decision.evaluation.one_step import fresh_points, fresh_summary   # the simulation's imports: here only
+    from exit_decision.evaluation.one_step import fresh_points, points_summary   # the simulation's imports: here only
 
     rows = read_rows(gains_dir / 'fresh_futures.csv')
     if not rows:
@@ -287,7 +287,8 @@ def fresh_futures(gains_dir: Path, out: Path) -> Path | None:
     fig, axes = plt.subplots(1, len(modes), figsize=(3.4 * len(modes), 3.4), squeeze=False)
     for ax, mode in zip(axes[0], modes):
         of_mode = [row for row in rows if row['mode'] == mode]
-        points, figures = fresh_points(of_mode), fresh_summary(of_mode)
+        points = fresh_points(of_mode)
+        figures = points_summary(points)
         first = np.array([point['first'] for point in points])
         fresh = np.array([point['fresh'] for point in points])
         ax.errorbar(first, fresh[:, 0], yerr=[fresh[:, 0] - fresh[:, 1], fresh[:, 2] - fresh[:, 0]], fmt='o',

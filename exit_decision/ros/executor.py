@@ -47,19 +47,22 @@ class TakenByTheWaiter(CallbackGroup):
 _takes = threading.local()   # a thread's SerializedTake (its buffer), made on its first raw take
 
 
+def _take_typed(subscription):
+    """rclpy's take: the decoded message and its info, or None."""
+    return subscription.handle.take_message(subscription.msg_type, subscription.raw)
+
+
 def take_waiting(subscription, limit: int | None = None) -> int:
     """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
     its callback now, without the executor, and say how many (a flood on the topic costs each
     message its decoding, or its header read, and the check that refuses it). A raw
     subscription's messages are taken with their publisher's gid (``take.SerializedTake``)."""
     with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
+    take = _take_typed
     if subscription.raw:
         if not hasattr(_takes, 'take'):
             _takes.take = SerializedTake()
         take = _takes.take
-    else:
-        def take(subscription):
-            return subscription.handle.take_message(subscription.msg_type, subscription.raw)
     taken = 0
     try:
         with subscription.handle:
