@@ -80,7 +80,7 @@ def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_
 
     from rclpy.qos import QoSProfile
 
-    from exit_decision.ros.take import SerializedTake
+    from exit_decision.ros.take import SerializedTake, Unread
     probe = ProbeNode('serialized_take_test')
     try:
         qos = QoSProfile(depth=10)
@@ -107,6 +107,54 @@ def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_
         assert second[1]['publication_sequence_number'] == first[1]['publication_sequence_number'] + 1
         assert before <= second[1]['source_timestamp'] <= after <= second[1]['received_timestamp'] + 10 ** 9
         assert second[1]['publisher_gid'] == gid
+        # over a size limit a message is not copied: its length only; at the limit, its bytes
+        size = len(messages[0])
+        for _ in range(2):
+            publisher.publish(messages[0])
+        with subscription.handle:
+            while (over := take(subscription, size - 1)) is None and time.monotonic() < deadline:
+                time.sleep(0.01)
+            while (within := take(subscription, size)) is None and time.monotonic() < deadline:
+                time.sleep(0.01)
+        assert isinstance(over[0], Unread) and len(over[0]) == size
+        assert within[0] == messages[0]
+    finally:
+        probe.close()
+
+
+def test_a_message_takes_the_waiting_episode_starts_unless_it_came_before_they_were_taken():
+    """Before judging a message of another episode, a node takes the episode starts waiting for it
+    (the start came first), except when their queue was emptied after the message was received:
+    then its start, had one come, was taken then (so a flood of stale messages costs no take of
+    the events each). A start still waiting is seen by a message received after it, and not by
+    one received before the queue's last emptying."""
+    import time
+
+    from exit_decision.input_checks import StepGate
+    from exit_decision.ros.executor import emptied_at
+
+    config = load_project(default_config_dir())
+    topic = '/events_order_test'
+    probe = ProbeNode('events_order_test')
+    try:
+        diagnostics, gate = Diagnostics(probe.node, 'events_order_test'), StepGate(100)
+
+        def on_event(raw: bytes) -> None:
+            if (episode := diagnostics.started_episode(raw, topic)) is not None:
+                gate.announce(episode)
+        events = Intake(probe.node, diagnostics, limits_of(config)).subscribe(EpisodeEvent, topic, on_event,
+                                                                             EVENT_QOS, raw=True)
+        publisher = probe.node.create_publisher(EpisodeEvent, topic, EVENT_QOS)
+        assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 10)
+        publisher.publish(EpisodeEvent(episode=1))
+        assert probe.spin_until(lambda: gate.episode == 1, 10)   # taken: the queue emptied
+        before = emptied_at(events) - 1                          # a message received before that
+        publisher.publish(EpisodeEvent(episode=2))
+        time.sleep(0.3)                                          # waiting in the queue, not taken
+        assert diagnostics.out_of_sequence(gate, events, 2, 0, 'states', received=before)
+        assert 2 not in gate.announced, 'a message received before the emptying takes no events'
+        assert not diagnostics.out_of_sequence(gate, events, 2, 0, 'states', received=time.time_ns())
+        assert 2 in gate.announced, 'one received after the start was sent sees it'
     finally:
         probe.close()
 

@@ -208,3 +208,31 @@ def test_malformed_cdr_commands_are_refused_naming_what():
     unterminated[unterminated.index(b'CAV_12\0') + 6] = ord('7')   # read to its length: CAV_127
     with pytest.raises(MessageError, match='not one NUL-terminated string'):
         decode_commands(bytes(unterminated))
+
+
+def test_episode_events_read_from_cdr_are_what_rclpy_reads_and_nothing_else_passes():
+    """The decision path's nodes read an event's episode and kind from its bytes (a flood of
+    events would cost each one rclpy's decoding): for frame ids of every length modulo 4 (they
+    shift the fields behind them) they are rclpy's, and bytes cut short, padded beyond the
+    message, in the other byte order or with a broken frame id are refused."""
+    from exit_decision_msgs.msg import EpisodeEvent
+    from rclpy.serialization import serialize_message
+
+    from exit_decision.ros.messages.events_cdr import decode_event
+    for length in range(6):
+        msg = EpisodeEvent(episode=2**32 - 1 - length, seed=-7, event=EpisodeEvent.EVENT_ENDED if length % 2 else 0,
+                           truncated=True, steps=123, v_avs=1.5, n_braking=4, braking_steps=9, reward=-2.5)
+        msg.header.frame_id = 'f' * length
+        raw = serialize_message(msg)
+        assert decode_event(raw) == (msg.episode, msg.event), length
+        for cut in (1, 4, 8, 9):
+            with pytest.raises(MessageError, match='not an EpisodeEvent'):
+                decode_event(raw[:-cut])
+        with pytest.raises(MessageError, match='more than an EpisodeEvent'):
+            decode_event(raw + bytes(4))
+        with pytest.raises(MessageError, match='not little-endian CDR'):
+            decode_event(b'\x00\x00' + raw[2:])
+        unterminated = bytearray(raw)
+        unterminated[16 + length] = ord('x')   # the frame id's NUL
+        with pytest.raises(MessageError, match='not one NUL-terminated string'):
+            decode_event(bytes(unterminated))

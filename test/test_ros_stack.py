@@ -622,7 +622,10 @@ def test_bad_input_and_a_flood_are_rejected_counted_and_poison_nothing(setup, cl
     steps, interval = ended[0].steps, load_project(setup['config_dir']).env.decision_interval
     bridge, graph, decision = (counters[n] for n in ('sumo_bridge', 'graph_builder', 'decision_node'))
     assert bridge.get('command_timeouts', 0) == 0, f'every decision step answered in time: {counters}'
-    assert bridge['rejected_stale_commands'] > 0 and bridge['rejected_command_messages'] > 0, bridge
+    # a command is judged by its step first (a flood of stale ones costs a header's read each): the
+    # bad fields of those that arrive while the bridge waits for their step are counted as such
+    # (exactly: test_bridge_rejects_commands_it_cannot_apply_and_goes_on), the others as stale
+    assert bridge['rejected_stale_commands'] > 0, bridge
     assert graph['graphs'] == steps // interval + 1, 'a graph of every decision step of the bridge'
     assert graph['rejected_states'] > 0 and graph['rejected_out_of_sequence_states'] > 0, graph
     if 'decision_node' in deciding:   # alone it checks the states itself; composed it takes the graph builder's

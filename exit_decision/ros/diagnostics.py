@@ -8,11 +8,13 @@ import time
 from collections.abc import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from exit_decision_msgs.msg import EpisodeEvent
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from exit_decision.input_checks import InputError
-from exit_decision.ros.executor import take_waiting
+from exit_decision.ros.executor import emptied_at, take_waiting
+from exit_decision.ros.messages.events_cdr import decode_event
 from exit_decision.ros.messages.states_cdr import decode_states
 from exit_decision.ros.topics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.step_gaps import episode_and_step
@@ -79,31 +81,47 @@ class Diagnostics:
             self.reject(what, what, str(error), topic, 'undecodable')
             return None
 
-    def out_of_sequence(self, gate, events, episode: int, step: int, what: str) -> bool:
+    def started_episode(self, raw: bytes, topic: str) -> int | None:
+        """The episode whose start ``raw`` (an EpisodeEvent's CDR bytes, ``events_cdr``) announces;
+        None for another event, and, rejected and counted (``rejected_episode_events``; of
+        ``topic``: undecodable), for bytes that are no such message."""
+        try:
+            episode, event = decode_event(raw)
+        except InputError as error:
+            self.reject('episode_events', 'an episode event', str(error), topic, 'undecodable')
+            return None
+        return episode if event == EpisodeEvent.EVENT_STARTED else None
+
+    def out_of_sequence(self, gate, events, episode: int, step: int, what: str, received: int | None = None) -> bool:
         """Reject and count (``rejected_out_of_sequence_<what>``, ``dropped_<topic>_out_of_sequence``
         of its topic, ``STEPPED``) a message of ``what`` whose (episode, step)
         ``gate`` (an ``input_checks.StepGate``) refuses; True if it did. A message of another
         episode than the gate's, or a step back (the same episode again: a looped bag's next
         pass), first takes what waits on ``events`` (the episode-events subscription): its
-        EVENT_STARTED, from the same bridge or player, came before it."""
-        if episode != gate.episode or step <= gate.last:
+        EVENT_STARTED, from the same bridge or player, came before it. Not when that queue was
+        emptied after the message was ``received`` (the middleware's reception stamp, ns): the
+        event reached the node before it (one participant's messages come through one port, in
+        order), so it was taken then, and a flood of stale messages costs no take of the events
+        each."""
+        if (episode != gate.episode or step <= gate.last) and (received is None or received >= emptied_at(events)):
             take_waiting(events)
         reason = gate.refuse(episode, step)
         if reason:
             self.reject(f'out_of_sequence_{what}', what, reason, STEPPED[what], 'out_of_sequence')
         return reason is not None
 
-    def take_states(self, raw: bytes, gate, events, limits, every: int = 1):
+    def take_states(self, raw: bytes, gate, events, limits, every: int = 1, received: int | None = None):
         """The vehicle states in ``raw`` (a ``states_cdr.DecodedStates``), or None when they are
         not taken: a step that is not a multiple of ``every`` (not counted), and, rejected and
         counted, bytes too short for (episode, step), a step ``gate`` refuses (``out_of_sequence``)
         and a field that does not fit the scenario's ``limits``. Read in that order, so a flood
-        of what cannot follow costs no decoding. The caller accepts the step on its gate."""
+        of what cannot follow costs no decoding (``received``: as ``out_of_sequence``). The caller
+        accepts the step on its gate."""
         key = self.step_of(raw, 'states', STATES_TOPIC)
         if key is None or key[1] % every:
             return None
         episode, step = key
-        if self.out_of_sequence(gate, events, episode, step, 'states'):
+        if self.out_of_sequence(gate, events, episode, step, 'states', received):
             return None
         cause = 'undecodable'   # bytes that are no well-formed VehicleStateArray, then fields off the scenario
         try:

@@ -5,6 +5,7 @@ import signal
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 
 from exit_decision.ros.dds_defaults import apply_dds_defaults
@@ -45,10 +46,19 @@ class TakenByTheWaiter(CallbackGroup):
 
 
 _takes = threading.local()   # a thread's SerializedTake (its buffer), made on its first raw take
+#: subscription -> [ns, system clock] when the last ``take_waiting`` that emptied its queue began
+_emptied: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _take_typed(subscription):
-    """rclpy's take: the decoded message and its info, or None."""
+def emptied_at(subscription) -> int:
+    """[ns, the system clock of the middleware's reception stamps] when the last ``take_waiting``
+    that emptied the queue of ``subscription`` began (-1: none yet): every message the node had
+    received by then has been taken."""
+    return _emptied.get(subscription, -1)
+
+
+def _take_typed(subscription, size_limit: int | None = None):
+    """rclpy's take: the decoded message and its info, or None (a typed message has no size to limit)."""
     return subscription.handle.take_message(subscription.msg_type, subscription.raw)
 
 
@@ -56,19 +66,23 @@ def take_waiting(subscription, limit: int | None = None) -> int:
     """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
     its callback now, without the executor, and say how many (a flood on the topic costs each
     message its decoding, or its header read, and the check that refuses it). A raw
-    subscription's messages are taken with their publisher's gid (``take.SerializedTake``)."""
+    subscription's messages are taken with their publisher's gid (``take.SerializedTake``); one
+    over the ``size_limit`` its callback carries (``intake.Intake`` gives it one) reaches the
+    callback as a ``take.Unread``, its length only: not copied out of the middleware's buffer."""
     with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
+    size_limit = getattr(subscription.callback, 'size_limit', None)
     take = _take_typed
     if subscription.raw:
         if not hasattr(_takes, 'take'):
             _takes.take = SerializedTake()
         take = _takes.take
-    taken = 0
+    taken, began = 0, time.time_ns()
     try:
         with subscription.handle:
             while limit is None or taken < limit:
-                message = take(subscription)
+                message = take(subscription, size_limit)
                 if message is None:
+                    _emptied[subscription] = began
                     break
                 subscription.callback(*(message if with_info else message[:1]))
                 taken += 1
@@ -92,35 +106,55 @@ def _release(handles) -> None:
 
 class Waiter:
     """The wait of a process's nodes (one, or several composed in one process), lean: one wait
-    set on their subscriptions, services, clients, timers and guard conditions. Each
-    subscription that is ready hands over its queue at once, up to its QoS depth a pass
-    (``take_waiting``), in the order the nodes (given in order) created them (a node that
-    subscribes to the episode events first sees an episode's start before its messages); a
-    guard condition's callback runs here (the wait takes its trigger). rclpy's executor
-    (``spin_once(0)``) serves the rest: services, clients and timers when they are ready, and
-    its own work (tasks of futures, QoS event handlers) at least every ``EXECUTOR_PERIOD``.
+    set on their subscriptions and guard conditions, and at least every ``SERVICE_PERIOD`` on
+    their services, clients and timers too. Each subscription that is ready hands over its
+    queue at once, up to its QoS depth a pass (``take_waiting``), in the order the nodes (given
+    in order) created them (a node that subscribes to the episode events first sees an
+    episode's start before its messages); a guard condition's callback runs here (the wait
+    takes its trigger). rclpy's executor (``spin_once(0)``) serves the rest: services, clients
+    and timers when they are ready, and its own work (tasks of futures, QoS event handlers) at
+    least every ``EXECUTOR_PERIOD``.
 
     rclpy's executor builds its wait set again, and walks every entity of the node (two QoS
     event handlers per publisher and subscription) in Python, for every single message it
     hands over: 0.35-0.7 ms a message here, most of what the stack's nodes cost per step.
-    One thread spins a Waiter (it keeps its wait set between passes)."""
+    One thread spins a Waiter (it keeps its wait sets between passes).
+
+    Why services wait for their turn: the middleware's wait costs each entity waited on its
+    attachment and detachment (the bridge's 8 services and timers make its pass about twice as
+    costly as one on its one subscription), and a node that a flood wakes thousands of times a
+    second pays that at every wake. So a busy node answers a service request within
+    ``SERVICE_PERIOD``; one with nothing to take waits on everything, and answers at once."""
 
     EXECUTOR_PERIOD = 0.5   # [s]
-    #: the node attributes listing what a wait set holds, in the order ``_rclpy.WaitSet`` counts them
+    SERVICE_PERIOD = 0.02   # [s] services, clients and timers are waited on at least this often
+    #: the node attributes listing what a wait set holds, in the order ``_rclpy.WaitSet`` counts
+    #: them; a pass between SERVICE_PERIODs waits on the first two kinds only
     KINDS = ('subscriptions', 'guards', 'timers', 'clients', 'services')
 
     def __init__(self, nodes: Sequence[Node], executor: SingleThreadedExecutor):
         self.nodes, self.executor = tuple(nodes), executor
         self.executor_passed = time.monotonic()
-        self.wait_set, self.wait_set_counts = None, None
+        self.everything_due = 0.0                      # (monotonic) the next pass waits on every kind
+        self.wait_sets: dict[bool, tuple] = {}         # everything? -> (its entity counts, its wait set)
+
+    def entities(self, kinds) -> list[list]:
+        """The nodes' entities of each of ``KINDS``: those of ``kinds``, none of the others."""
+        return [[item for node in self.nodes for item in getattr(node, kind)] if kind in kinds else []
+                for kind in self.KINDS]
 
     def spin_once(self, timeout_sec: float) -> None:
         """Wait up to ``timeout_sec`` and serve what is ready. Lean because every message of a
         node costs one: the wait set is kept and refilled while the number of entities stays
-        (its creation was a fifth of a pass), and the entities are held as rclpy's executor
-        holds them (no entity destroyed while waited on), without an ExitStack (a pass cost
-        100 us of CPU here, 160 us inside the stack, for every states message of a step)."""
-        entities = [[item for node in self.nodes for item in getattr(node, kind)] for kind in self.KINDS]
+        (its creation was a fifth of a pass), services wait for their turn (class docstring),
+        and the entities are held as rclpy's executor holds them (no entity destroyed while
+        waited on), without an ExitStack (a pass cost 100 us of CPU here, 160 us inside the
+        stack, for every states message of a step)."""
+        now = time.monotonic()
+        everything = now >= self.everything_due
+        entities = self.entities(self.KINDS if everything else self.KINDS[:2])
+        if not any(entities):   # nothing to wait on between the services' turns: their turn now
+            everything, entities = True, self.entities(self.KINDS)
         held = []
         try:
             for items in entities:
@@ -135,20 +169,20 @@ class Waiter:
                 items[:] = kept
             subscriptions, guards, timers, clients, services = entities
             counts = tuple(map(len, entities))
-            if counts != self.wait_set_counts:
-                self.wait_set = _rclpy.WaitSet(*counts, 0, self.nodes[0].context.handle)   # no events
-                self.wait_set_counts = counts
-            wait_set = self.wait_set
+            kept_counts, wait_set = self.wait_sets.get(everything, (None, None))
+            if counts != kept_counts:
+                wait_set = _rclpy.WaitSet(*counts, 0, self.nodes[0].context.handle)   # no events
+                self.wait_sets[everything] = counts, wait_set
             wait_set.clear_entities()
             for items, add in zip(entities, (wait_set.add_subscription, wait_set.add_guard_condition,
                                              wait_set.add_timer, wait_set.add_client, wait_set.add_service)):
                 for item in items:
                     add(item.handle)
-            wait_set.wait(int(timeout_sec * 1e9))
-            ready_subscriptions = set(wait_set.get_ready_entities('subscription'))
-            ready_guards = set(wait_set.get_ready_entities('guard_condition')) if guards else ()
-            others_ready = any(wait_set.get_ready_entities(kind) for kind, items in
-                               (('timer', timers), ('client', clients), ('service', services)) if items)
+            wait_set.wait(int((timeout_sec if everything else min(timeout_sec, self.everything_due - now)) * 1e9))
+            ready_subscriptions = wait_set.get_ready_entities('subscription')   # a few: a list is as quick as a set
+            ready_guards = wait_set.get_ready_entities('guard_condition') if guards else ()
+            others_ready = everything and any(wait_set.get_ready_entities(kind) for kind, items in
+                                              (('timer', timers), ('client', clients), ('service', services)) if items)
             taken = [item for item in subscriptions if item.handle.pointer in ready_subscriptions]
             triggered = [guard for guard in guards if guard.callback is not None and guard.handle.pointer in ready_guards]
         finally:
@@ -157,7 +191,10 @@ class Waiter:
             take_waiting(subscription, subscription.qos_profile.depth or None)   # keep-all: depth 0
         for guard in triggered:
             guard.callback()
+        if not everything:
+            return
         now = time.monotonic()
+        self.everything_due = now + self.SERVICE_PERIOD
         if others_ready or not taken or now - self.executor_passed >= self.EXECUTOR_PERIOD:
             self.executor_passed = now
             self.executor.spin_once(timeout_sec=0.0)
@@ -167,6 +204,7 @@ class Waiter:
         pass without waiting if the executor has had none for ``EXECUTOR_PERIOD``, so services
         (``ros2 param set``) are still answered."""
         if time.monotonic() - self.executor_passed >= self.EXECUTOR_PERIOD:
+            self.everything_due = 0.0
             self.spin_once(0.0)
 
 

@@ -21,7 +21,8 @@ reader's payload size only with preallocated history memory, whose size rmw_fast
 the type's fixed part (a few bytes for the stack's unbounded arrays), not from a limit of ours
 (config/fastdds.xml). So a reader's queue holds, while the node has not taken them, up to its
 depth of messages of any size; the node empties its queues at once (``executor.Waiter``,
-``take_waiting``), and what it takes it copies only up to the limit's check. ``topics.py``
+``take_waiting``), and copies a message over its topic's limit no further than the middleware
+did (``take.Unread``: its length only). ``topics.py``
 says what each queue holds at most of accepted messages: depth x the topic's limit.
 """
 from __future__ import annotations
@@ -97,5 +98,6 @@ class Intake:
                 diagnostics.drop(topic, 'undecodable', f'a message on {topic}', f'not a {msg_type.__name__}: {error}')
                 return
             callback(message, info) if with_info else callback(message)
+        on_message.size_limit = limit   # take_waiting copies no message over it (``take.Unread``)
         return self.node.create_subscription(msg_type, topic, on_message, qos, raw=True,
                                              callback_group=self.callback_group)

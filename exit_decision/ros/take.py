@@ -59,6 +59,19 @@ def _load() -> tuple:
     return _libraries
 
 
+class Unread:
+    """A message taken over its size limit and not copied out of the middleware's buffer: its
+    length (``len``) is all that is known of it."""
+
+    __slots__ = ('length',)
+
+    def __init__(self, length: int):
+        self.length = length
+
+    def __len__(self) -> int:
+        return self.length
+
+
 class SerializedTake:
     """Takes the serialized messages of one rclpy subscription with their publisher's gid; one
     buffer, kept and grown by the middleware, copied into ``bytes`` per message."""
@@ -70,15 +83,21 @@ class SerializedTake:
         if rcutils.rcutils_uint8_array_init(ctypes.byref(self._message), INITIAL_CAPACITY,
                                             ctypes.byref(self._allocator)) != RCL_RET_OK:
             raise MemoryError('rcutils could not allocate a serialized message buffer')
+        # made once: a flood costs every message a take, and an empty queue one more
+        self._take = self._rcl.rcl_take_serialized_message
+        self._message_ref, self._info_ref = ctypes.byref(self._message), ctypes.byref(self._info)
 
-    def __call__(self, subscription) -> tuple[bytes, dict] | None:
+    def __call__(self, subscription, size_limit: int | None = None) -> tuple[bytes | Unread, dict] | None:
         """The next message waiting on ``subscription`` (the caller holds its handle) and its info
-        (rclpy's keys and ``publisher_gid``, 16 bytes), or None when none waits."""
-        message, info = self._message, self._info
-        if self._rcl.rcl_take_serialized_message(subscription.handle.pointer, ctypes.byref(message),
-                                                 ctypes.byref(info), None) != RCL_RET_OK:
+        (rclpy's keys and ``publisher_gid``, 16 bytes), or None when none waits. A message over
+        ``size_limit`` bytes is an ``Unread``: a flood of large ones costs no copy of each."""
+        if self._take(subscription.handle.pointer, self._message_ref, self._info_ref, None) != RCL_RET_OK:
             return None
-        return ctypes.string_at(message.buffer, message.buffer_length), {
+        message, info = self._message, self._info
+        length = message.buffer_length
+        data = Unread(length) if size_limit is not None and length > size_limit else \
+            ctypes.string_at(message.buffer, length)
+        return data, {
             'source_timestamp': info.source_timestamp, 'received_timestamp': info.received_timestamp,
             'publication_sequence_number': info.publication_sequence_number,
             'reception_sequence_number': info.reception_sequence_number,

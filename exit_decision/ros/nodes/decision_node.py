@@ -97,9 +97,10 @@ class DecisionNode(Node):
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
             self.intake = Intake.of_config(self, self.diagnostics, self.config)
-            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS)
-            self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS)
-            self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True)
+            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS, raw=True)
+            self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS, with_info=True)
+            self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True,
+                                  with_info=True)
         for callback in self.when_loaded:
             callback()
         self.get_logger().info(f'loaded {len(self.drivers)} policies from {self.policy_dir}; '
@@ -128,9 +129,12 @@ class DecisionNode(Node):
         for key, driver in self.drivers.items():
             driver.set_mode(self.selection.mode) if key == self.selection.key else driver.reset()
 
-    def on_episode(self, msg: EpisodeEvent) -> None:
-        if msg.event == EpisodeEvent.EVENT_STARTED:
-            self.pairing.announce(msg.episode)
+    def on_episode(self, raw: bytes) -> None:
+        """An episode's start, read from the bytes (``events_cdr``: a flood of events costs each
+        its few fields' reading)."""
+        episode = self.diagnostics.started_episode(raw, EPISODE_TOPIC)
+        if episode is not None:
+            self.pairing.announce(episode)
 
     def begin_episode(self, episode: int) -> None:
         """An episode's first graph or states: the streams follow it, no option is held."""
@@ -138,9 +142,10 @@ class DecisionNode(Node):
         self.last_decided = (episode, -1)
         self.bind_mode()   # no option held
 
-    def on_states(self, raw: bytes) -> None:
+    def on_states(self, raw: bytes, info: dict) -> None:
         gate = self.pairing.states_gate
-        states = self.diagnostics.take_states(raw, gate, self.events, self.limits, every=self.interval)
+        states = self.diagnostics.take_states(raw, gate, self.events, self.limits, every=self.interval,
+                                              received=info['received_timestamp'])
         if states is None:
             return                                  # only decision steps are used, checked
         key = (states.episode, states.step)
@@ -149,9 +154,10 @@ class DecisionNode(Node):
         self.diagnostics.count('skipped_states', gate.accept(*key) // self.interval)
         self.decide_pair(key, self.pairing.add(self.pairing.states, key, states.vehicles))
 
-    def on_graph(self, msg: GraphMsg) -> None:
+    def on_graph(self, msg: GraphMsg, info: dict) -> None:
         gate, key = self.pairing.graph_gate, (msg.episode, msg.step)
-        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs'):
+        if msg.step % self.interval or self.diagnostics.out_of_sequence(gate, self.events, *key, 'graphs',
+                                                                        info['received_timestamp']):
             return
         try:
             graph = graph_from_msg(msg, expected_nodes=self.num_nodes, expected_features=self.num_features)

@@ -11,7 +11,9 @@ In synchronous mode /diagnostics also has the bridge's wait for the commands of 
 step, from just before it publishes that step's states to the commands accepted
 (``decision_wait_ms_median``, ``_p99``, ``_max`` over the last DECISION_WAIT_WINDOW decision
 steps): the state-to-command latency as the simulation sees it.
-Commands are checked on arrival. A message is rejected whole, counted on /diagnostics and
+Commands are taken at every step (in synchronous mode too, where only a decision step's are
+awaited: a flood's are dropped as they come, not all in the next decision's wait) and checked
+on arrival. A message is rejected whole, counted on /diagnostics and
 changes nothing (in synchronous mode the bridge goes on waiting for a good answer) when it
 cannot answer now: another episode, or (synchronous) any step but the one waited on,
 (realtime) a step not after the last accepted one or after the current one. So is a message
@@ -120,9 +122,26 @@ class SumoBridge(Node):
     # --- commands -----------------------------------------------------------------------------
 
     def on_commands(self, raw: bytes) -> None:
-        """Accept (checked, clamped) the commands that can answer now; reject the rest whole: a
-        message with a bad field whatever its step, then one that cannot answer now. Decoded
-        from the CDR bytes (``commands_cdr``): the bridge waits on it."""
+        """Accept (checked, clamped) the commands that can answer now; reject the rest whole:
+        first one that cannot answer now, read from its header alone (a flood of stale commands
+        costs a header's read each), then a message with a bad field. Decoded from the CDR bytes
+        (``commands_cdr``): the bridge waits on it."""
+        peeked = self.diagnostics.step_of(raw, 'command_messages', COMMANDS_TOPIC)
+        if peeked is None:
+            return
+        episode, step = peeked
+        if episode != self.episode:
+            reason = f'episode {episode} is not the current episode {self.episode}'
+        elif self.timing == 'synchronous':
+            reason = None if step == self.awaiting else (
+                f'step {step}: waiting for step {self.awaiting}' if self.awaiting is not None
+                else f'step {step}: not waiting for commands')
+        else:
+            reason = None if self.last_command_step < step <= self.published_step else (
+                f'step {step} is not in {self.last_command_step + 1}..{self.published_step}')
+        if reason:
+            self.diagnostics.reject('stale_commands', 'commands', reason, COMMANDS_TOPIC, 'out_of_sequence')
+            return
         what, cause = 'commands', 'undecodable'
         try:
             msg = decode_commands(raw)
@@ -130,18 +149,6 @@ class SumoBridge(Node):
             commands, clamped = self.limits.sanitize(msg.commands)
         except InputError as error:
             self.diagnostics.reject('command_messages', what, str(error), COMMANDS_TOPIC, cause)
-            return
-        if msg.episode != self.episode:
-            reason = f'episode {msg.episode} is not the current episode {self.episode}'
-        elif self.timing == 'synchronous':
-            reason = None if msg.step == self.awaiting else (
-                f'step {msg.step}: waiting for step {self.awaiting}' if self.awaiting is not None
-                else f'step {msg.step}: not waiting for commands')
-        else:
-            reason = None if self.last_command_step < msg.step <= self.published_step else (
-                f'step {msg.step} is not in {self.last_command_step + 1}..{self.published_step}')
-        if reason:
-            self.diagnostics.reject('stale_commands', 'commands', reason, COMMANDS_TOPIC, 'out_of_sequence')
             return
         if clamped:
             self.diagnostics.count('clamped_commands', clamped)
@@ -171,11 +178,10 @@ class SumoBridge(Node):
         self.pending, self.awaiting = None, step
         deadline = time.monotonic() + self.command_timeout
         try:
-            while rclpy.ok(context=self.context):
-                take_waiting(self.commands)   # the whole queue at once: a flood on the topic cannot bury the answer
-                if self.pending is not None:
-                    self.decision_waits.append(time.monotonic() - self.published_at)
-                    return self.take_commands()
+            take_waiting(self.commands)   # the whole queue at once: a flood on the topic cannot bury the answer
+            while self.pending is None:   # each pass of the wait takes the queue when something comes
+                if not rclpy.ok(context=self.context):
+                    return None
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     self.diagnostics.count('command_timeouts')
@@ -183,7 +189,8 @@ class SumoBridge(Node):
                                               'holding the previous ones', throttle_duration_sec=5.0)
                     return None
                 self.waiter.spin_once(remaining)
-            return None
+            self.decision_waits.append(time.monotonic() - self.published_at)
+            return self.take_commands()
         finally:
             self.awaiting = None
 
@@ -236,7 +243,11 @@ class SumoBridge(Node):
             if self.timing == 'synchronous':
                 # the executor spins (parameter services, late messages) while it waits on a decision
                 # step; a spin on every step would cost each step ~0.35 ms of the 2 cores for nothing
-                commands = self.wait_for_commands(result.step) if result.step % self.interval == 0 else None
+                if result.step % self.interval == 0:
+                    commands = self.wait_for_commands(result.step)
+                else:   # commands are taken as they come, so a flood's are not all left to the next decision's wait
+                    take_waiting(self.commands)
+                    commands = None
             else:
                 next_tick += self.step_length / self.realtime_factor
                 if next_tick <= time.monotonic():
