@@ -139,11 +139,8 @@ def test_a_message_takes_the_waiting_episode_starts_unless_it_came_before_they_w
     try:
         diagnostics, gate = Diagnostics(probe.node, 'events_order_test'), StepGate(100)
 
-        def on_event(raw: bytes) -> None:
-            if (episode := diagnostics.started_episode(raw, topic)) is not None:
-                gate.announce(episode)
-        events = Intake(probe.node, diagnostics, limits_of(config)).subscribe(EpisodeEvent, topic, on_event,
-                                                                             EVENT_QOS, raw=True)
+        events = Intake(probe.node, diagnostics, limits_of(config)).subscribe(
+            EpisodeEvent, topic, diagnostics.episode_starts(gate.announce), EVENT_QOS, raw=True)
         publisher = probe.node.create_publisher(EpisodeEvent, topic, EVENT_QOS)
         assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 10)
         publisher.publish(EpisodeEvent(episode=1))

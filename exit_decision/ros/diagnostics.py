@@ -16,7 +16,7 @@ from exit_decision.input_checks import InputError
 from exit_decision.ros.executor import emptied_at, take_waiting
 from exit_decision.ros.messages.events_cdr import decode_event
 from exit_decision.ros.messages.states_cdr import decode_states
-from exit_decision.ros.topics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, GRAPH_TOPIC, STATES_TOPIC
+from exit_decision.ros.topics import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, GRAPH_TOPIC, STATES_TOPIC
 from exit_decision.step_gaps import episode_and_step
 
 REJECT_LOG_PERIOD = 5.0   # [s] a node logs a rejected message of one kind at most this often
@@ -81,16 +81,20 @@ class Diagnostics:
             self.reject(what, what, str(error), topic, 'undecodable')
             return None
 
-    def started_episode(self, raw: bytes, topic: str) -> int | None:
-        """The episode whose start ``raw`` (an EpisodeEvent's CDR bytes, ``events_cdr``) announces;
-        None for another event, and, rejected and counted (``rejected_episode_events``; of
-        ``topic``: undecodable), for bytes that are no such message."""
-        try:
-            episode, event = decode_event(raw)
-        except InputError as error:
-            self.reject('episode_events', 'an episode event', str(error), topic, 'undecodable')
-            return None
-        return episode if event == EpisodeEvent.EVENT_STARTED else None
+    def episode_starts(self, announce: Callable[[int], None]) -> Callable[[bytes], None]:
+        """The callback of a raw subscription to the episode events: each start, read from the
+        bytes (``events_cdr``: a flood of events costs each its few fields' reading), is handed
+        to ``announce`` (its episode); bytes that are no such message are rejected and counted
+        (``rejected_episode_events``, ``dropped_episode_events_undecodable``)."""
+        def on_event(raw: bytes) -> None:
+            try:
+                episode, event = decode_event(raw)
+            except InputError as error:
+                self.reject('episode_events', 'an episode event', str(error), EPISODE_TOPIC, 'undecodable')
+                return
+            if event == EpisodeEvent.EVENT_STARTED:
+                announce(episode)
+        return on_event
 
     def out_of_sequence(self, gate, events, episode: int, step: int, what: str, received: int | None = None) -> bool:
         """Reject and count (``rejected_out_of_sequence_<what>``, ``dropped_<topic>_out_of_sequence``

@@ -97,7 +97,8 @@ class DecisionNode(Node):
         self.options_publisher = self.create_publisher(CavOptionArray, OPTIONS_TOPIC, COMMANDS_QOS)
         if not self.composed:   # events first: the node's wait empties the subscription created first first
             self.intake = Intake.of_config(self, self.diagnostics, self.config)
-            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS, raw=True)
+            starts = self.diagnostics.episode_starts(self.pairing.announce)   # read from the bytes: events_cdr
+            self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, starts, EVENT_QOS, raw=True)
             self.intake.subscribe(GraphMsg, GRAPH_TOPIC, self.on_graph, GRAPH_QOS, with_info=True)
             self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True,
                                   with_info=True)
@@ -128,13 +129,6 @@ class DecisionNode(Node):
         """The active driver drives in the selection's mode; every option held ends (a switch)."""
         for key, driver in self.drivers.items():
             driver.set_mode(self.selection.mode) if key == self.selection.key else driver.reset()
-
-    def on_episode(self, raw: bytes) -> None:
-        """An episode's start, read from the bytes (``events_cdr``: a flood of events costs each
-        its few fields' reading)."""
-        episode = self.diagnostics.started_episode(raw, EPISODE_TOPIC)
-        if episode is not None:
-            self.pairing.announce(episode)
 
     def begin_episode(self, episode: int) -> None:
         """An episode's first graph or states: the streams follow it, no option is held."""

@@ -69,15 +69,10 @@ class GraphBuilderNode(Node):
     def subscribe(self) -> None:
         # events first: when an episode's start and its first states are both waiting, the
         # node's wait (executor.Waiter) empties the queue of the subscription created first first
-        self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, self.on_episode, EVENT_QOS, raw=True)
-        self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True, with_info=True)
-
-    def on_episode(self, raw: bytes) -> None:
-        """An episode's start, read from the bytes (``events_cdr``: a flood of events costs each
-        its few fields' reading)."""
-        episode = self.diagnostics.started_episode(raw, EPISODE_TOPIC)
-        if episode is not None:
-            self.gate.announce(episode)
+        starts = self.diagnostics.episode_starts(self.gate.announce)   # read from the bytes: events_cdr
+        self.events = self.intake.subscribe(EpisodeEvent, EPISODE_TOPIC, starts, EVENT_QOS, raw=True)
+        self.intake.subscribe(VehicleStateArray, STATES_TOPIC, self.on_states, STATES_QOS, raw=True,
+                              with_info=True)
 
     def on_states(self, raw: bytes, info: dict) -> None:
         states = self.diagnostics.take_states(raw, self.gate, self.events, self.limits, every=self.interval,
