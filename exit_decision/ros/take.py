@@ -73,8 +73,9 @@ class Unread:
 
 
 class SerializedTake:
-    """Takes the serialized messages of one rclpy subscription with their publisher's gid; one
-    buffer, kept and grown by the middleware, copied into ``bytes`` per message."""
+    """Takes the serialized messages of rclpy subscriptions with their publisher's gid; one
+    buffer, kept and grown by the middleware, copied into ``bytes`` per message within its
+    size limit."""
 
     def __init__(self):
         rcutils, self._rcl = _load()
