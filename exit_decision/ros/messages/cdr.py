@@ -1,5 +1,5 @@
 """The pieces of plain CDR (what rmw_fastrtps writes) that the message codecs of the decision
-path share (``states_cdr``, ``commands_cdr``): a 4-byte encapsulation header, then each field
+path share (``states_cdr``, ``commands_cdr``, ``events_cdr``): a 4-byte encapsulation header, then each field
 aligned to its size (at most 8) from the end of that header, a string as a uint32 length
 counting its NUL, its bytes, the NUL, the whole padded to 4 bytes. Little endian only: every
 ROS 2 host here writes it, and the decoders refuse the other order.
@@ -24,6 +24,12 @@ def string(text: str) -> bytes:
 def pad(out: bytearray, alignment: int) -> None:
     """Align the end of ``out`` (which starts with the encapsulation header) to ``alignment``."""
     out += b'\0' * (-(len(out) - 4) % alignment)
+
+
+def aligned(offset: int, alignment: int) -> int:
+    """``offset`` (from the message's first byte) moved up to ``alignment`` from the end of the
+    encapsulation header: where a field read there begins (``pad``'s counterpart)."""
+    return offset + -(offset - 4) % alignment
 
 
 def finish(out: bytearray) -> bytes:

@@ -12,19 +12,13 @@ from __future__ import annotations
 
 import struct
 
-from exit_decision.ros.messages.cdr import check_little_endian, read_string
+from exit_decision.ros.messages.cdr import aligned, check_little_endian, read_string
 from exit_decision.ros.messages.conversions import MessageError
 
 _EPISODE = struct.Struct('<I')
 #: from ``seed`` on (aligned to 8) every field's place is fixed: seed, event, truncated, (padding to
 #: 4) steps, v_avs, v_s, p_collision, p_collision_cav, n_braking, braking_steps, p_cav, p_hv2, reward
 _TAIL = struct.Struct('<qBB2xI4dII3d')
-
-
-def _aligned(offset: int, alignment: int) -> int:
-    """``offset`` (from the message's first byte) moved up to ``alignment`` from the end of the
-    4-byte encapsulation header."""
-    return offset + -(offset - 4) % alignment
 
 
 def decode_event(cdr: bytes) -> tuple[int, int]:
@@ -34,9 +28,9 @@ def decode_event(cdr: bytes) -> tuple[int, int]:
     try:
         check_little_endian(cdr, 'episode event')
         _, offset = read_string(cdr, 12)
-        offset = _aligned(offset, 4)
+        offset = aligned(offset, 4)
         (episode,) = _EPISODE.unpack_from(cdr, offset)
-        offset = _aligned(offset + _EPISODE.size, 8)
+        offset = aligned(offset + _EPISODE.size, 8)
         event = _TAIL.unpack_from(cdr, offset)[1]
         end = offset + _TAIL.size
     except (struct.error, IndexError, UnicodeDecodeError) as error:
