@@ -1,7 +1,7 @@
 """ament_python package exit_decision: executables land in lib/exit_decision (for `ros2 run`)."""
 from glob import glob
 
-from setuptools import find_packages, setup
+from setuptools import Extension, find_packages, setup
 
 PACKAGE = 'exit_decision'
 
@@ -9,6 +9,8 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
+    # the intake's take loop in C (exit_decision/ros/_drain.c): Python.h only, no ROS headers
+    ext_modules=[Extension('exit_decision.ros._drain', ['exit_decision/ros/_drain.c'])],
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
@@ -19,7 +21,7 @@ setup(
     ] + [('share/' + PACKAGE + '/' + directory, [directory + '/policy.pt'])
          for directory in sorted(glob('policies/*')) if glob(directory + '/policy.pt')],
     install_requires=['setuptools'],
-    zip_safe=True,
+    zip_safe=False,
     maintainer='exit_decision developers',
     maintainer_email='exit-decision@users.noreply.github.com',
     description='Graph RL highway-exit decision stack for CAVs (SUMO + ROS 2 Jazzy).',

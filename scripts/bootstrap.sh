@@ -3,7 +3,8 @@
 #   1. pip install -r requirements.txt            (stamp: hash of requirements.txt)
 #   2. build + install msg_defs into the venv     (stamp: hash of msg_defs/)
 #   3. install this ament_python package the colcon way into the venv prefix
-#      (executables in .venv/lib/exit_decision, share/exit_decision, ament index marker)
+#      (executables in .venv/lib/exit_decision, share/exit_decision, ament index marker), and
+#      build its C extension (exit_decision/ros/_drain.c) in place too, for the checkout's imports
 # The venv is an ament prefix: a .pth file sets AMENT_PREFIX_PATH to it when unset, so
 # nothing needs sourcing.
 set -euo pipefail
@@ -18,7 +19,7 @@ PY="$VENV/bin/python"
 export ROS_LOG_DIR="${ROS_LOG_DIR:-$ROOT/.ros_log}"
 unset _ROS_WHEELS_BOOTSTRAP_COMPLETE
 
-_hash() { (cd "$ROOT" && find "$@" -type f ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum | sha256sum | cut -c1-16); }
+_hash() { (cd "$ROOT" && find "$@" -type f ! -name '*.pyc' ! -name '*.so' ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum | sha256sum | cut -c1-16); }
 _stage_needed() { [ ! -f "$STAMPS/$1" ] || [ "$(cat "$STAMPS/$1")" != "$2" ]; }
 _stage_done() { mkdir -p "$STAMPS"; echo "$2" > "$STAMPS/$1"; }
 _log() { echo "[bootstrap] $*" >&2; }
@@ -66,6 +67,8 @@ if _stage_needed package "$h"; then
       install --prefix "$VENV" --record "$build/install_manifest.txt" \
       --single-version-externally-managed --install-scripts "$VENV/lib/exit_decision" \
       > "$build/install.log" 2>&1 || { cat "$build/install.log"; exit 1; }
+    "$PY" setup.py --quiet build_ext --inplace --build-temp "$build/inplace" \
+      > "$build/inplace.log" 2>&1 || { cat "$build/inplace.log"; exit 1; }
   )
   ln -sf "$VENV/lib/exit_decision/exit-decision" "$VENV/bin/exit-decision"
   _stage_done package "$h"

@@ -7,8 +7,9 @@ import json
 import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from exit_decision_msgs.msg import EpisodeEvent, TrafficGraph, VehicleStateArray
+from exit_decision_msgs.msg import CavCommandArray, EpisodeEvent, TrafficGraph, VehicleStateArray
 from rclpy.duration import Duration
+from rclpy.qos import QoSProfile
 from rclpy.serialization import serialize_message
 
 from exit_decision.config import default_config_dir, load_project
@@ -23,6 +24,7 @@ from exit_decision.ros.probe import ProbeNode
 from exit_decision.ros.stack.flood import MEMORY_MB, bench_flood
 from exit_decision.ros.stack.flooder import padded
 from exit_decision.ros.stack.launcher import start_node
+from exit_decision.ros.topic_names import CLOCK_TOPIC
 from exit_decision.ros.topics import COMMANDS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC, STATES_TOPIC, STREAM_QOS
 from exit_decision.traffic import CavCommand, VehicleState
 
@@ -73,14 +75,13 @@ def test_the_intake_refuses_what_is_too_large_or_undecodable_and_counts_it_by_to
 
 
 def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_publishers_gid():
-    """``take.SerializedTake`` (rcl's take through ctypes) against what rclpy knows: the same bytes
+    """``take.SerializedTake`` (rcl's take, looped in C) against what rclpy knows: the same bytes
     as rclpy's own take, consecutive sequence numbers, a source time within the publish call and
-    the gid the graph lists for the publisher (so the structures' fields sit where rcl puts them)."""
+    the gid the graph lists for the publisher (so the structures' fields sit where rcl puts them);
+    a message over the size limit is dropped there, recorded with its gid, number and length."""
     import time
 
-    from rclpy.qos import QoSProfile
-
-    from exit_decision.ros.take import SerializedTake, Unread
+    from exit_decision.ros.take import MESSAGE_WAITING, QUEUE_EMPTY, TOO_LARGE, SerializedTake
     probe = ProbeNode('serialized_take_test')
     try:
         qos = QoSProfile(depth=10)
@@ -96,28 +97,77 @@ def test_a_serialized_take_gives_the_bytes_the_sequence_number_the_time_and_the_
         (gid,) = [bytes(info.endpoint_gid[:16]) for info in probe.node.get_publishers_info_by_topic(
             '/serialized_take_test')]
         deadline = time.monotonic() + 10
+        take = SerializedTake()
         with subscription.handle:
-            take = SerializedTake()
             while (first := subscription.handle.take_message(EpisodeEvent, True)) is None \
                     and time.monotonic() < deadline:
                 time.sleep(0.01)
-            while (second := take(subscription)) is None and time.monotonic() < deadline:
+            while take.drain(subscription) != (MESSAGE_WAITING, 0) and time.monotonic() < deadline:
                 time.sleep(0.01)
+            second = take.waiting()
         assert (first[0], second[0]) == tuple(messages)
         assert second[1]['publication_sequence_number'] == first[1]['publication_sequence_number'] + 1
         assert before <= second[1]['source_timestamp'] <= after <= second[1]['received_timestamp'] + 10 ** 9
         assert second[1]['publisher_gid'] == gid
-        # over a size limit a message is not copied: its length only; at the limit, its bytes
-        size = len(messages[0])
+        # over a size limit a message is dropped in C, recorded; at the limit, it waits for Python
+        size, number = len(messages[0]), second[1]['publication_sequence_number']
         for _ in range(2):
             publisher.publish(messages[0])
+        publisher.publish(messages[1])
+        dropped = []
         with subscription.handle:
-            while (over := take(subscription, size - 1)) is None and time.monotonic() < deadline:
+            while len(dropped) < 3 and time.monotonic() < deadline:
+                status, count = take.drain(subscription, size - 1)
+                dropped += take.records(count)
+                assert status == QUEUE_EMPTY
+        assert dropped == [(gid, number + i, TOO_LARGE, size, 0) for i in (1, 2, 3)]
+        publisher.publish(messages[1])
+        with subscription.handle:
+            while take.drain(subscription, size) != (MESSAGE_WAITING, 0) and time.monotonic() < deadline:
                 time.sleep(0.01)
-            while (within := take(subscription, size)) is None and time.monotonic() < deadline:
-                time.sleep(0.01)
-        assert isinstance(over[0], Unread) and len(over[0]) == size
-        assert within[0] == messages[0]
+            assert take.waiting()[0] == messages[1]
+            assert take.drain(subscription, size) == (QUEUE_EMPTY, 0)
+    finally:
+        probe.close()
+
+
+def test_a_window_of_steps_lets_through_only_what_the_node_can_take_and_counts_the_rest():
+    """A subscription given a window of (episode, steps): messages outside it are dropped before
+    Python (``_drain.c`` reads their header) and handed to the node's refusal with their count
+    and the last one's episode and step; those inside, and one too short to tell, reach the
+    callback; every one is counted as received, and a publisher's gap in between still counts."""
+    import time
+
+    config = load_project(default_config_dir())
+    probe = ProbeNode('window_test')
+    try:
+        diagnostics = Diagnostics(probe.node, 'window_test')
+        taken, refused = [], []
+        Intake(probe.node, diagnostics, limits_of(config)).subscribe(
+            CavCommandArray, COMMANDS_TOPIC, taken.append, QoSProfile(depth=5), raw=True,
+            window=lambda: (4, 10, 15), refuse=lambda *refusal: refused.append(refusal))
+        publisher = probe.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
+        assert probe.spin_until(lambda: publisher.get_subscription_count() > 0, 10)
+
+        def commands(episode: int, step: int) -> bytes:
+            return encode_commands({}, episode=episode, step=step, stamp=Time(), mode='AGGI', algorithm='gqn',
+                                   policy='p')
+        short = b'\x00\x01\x00\x00\xff'
+        for message in (commands(4, 10), commands(3, 12), commands(4, 9), short, commands(4, 15)):
+            publisher.publish(message)
+        time.sleep(0.5)   # all in the queue: one pass takes them
+        assert probe.spin_until(lambda: diagnostics.counters.get('received_cav_commands') == 5, 10), \
+            diagnostics.counters
+        assert taken == [commands(4, 10), short, commands(4, 15)]
+        assert refused == [(4, 9, 2)]
+        # the queue (depth 5) kept the last five of eight: the three it overwrote count as a gap
+        for step in range(20, 28):
+            publisher.publish(commands(4, step))
+        time.sleep(0.5)
+        assert probe.spin_until(lambda: diagnostics.counters.get('received_cav_commands') == 10, 10), \
+            diagnostics.counters
+        assert diagnostics.counters['dropped_cav_commands'] == 3
+        assert refused[-1] == (4, 27, 5) and len(taken) == 3
     finally:
         probe.close()
 
@@ -161,8 +211,6 @@ def test_the_intake_counts_what_a_full_queue_overwrote_for_each_of_two_publisher
     after each publisher's first message is taken, 40 more from each arrive before the node takes
     again; what the queue overwrote shows as gaps in each publisher's sequence and is counted, so
     taken + dropped = sent."""
-    from rclpy.qos import QoSProfile
-
     config = load_project(default_config_dir())
     topic, qos = '/intake_overwrite_test', QoSProfile(depth=5)
     listener, senders = ProbeNode('intake_overwrite_test'), [ProbeNode(f'overwriter_{i}') for i in range(2)]
@@ -259,3 +307,23 @@ def test_the_waits_p99_pools_the_pairs_of_a_topic_and_kind():
     lines = [line for line in text.splitlines() if 'decision wait p99' in line]
     assert len(lines) == 2 and all('20 steps), 10.00 ms without (20 steps), its 2 pairs pooled: 1.00x ok' in line
                                    for line in lines), text
+
+
+def test_a_flood_below_its_rate_fails_the_bench_and_one_no_middleware_would_send_is_not_applicable():
+    """An oversized flood of a bounded type (/clock's) cannot be sent: every message refused by the
+    flooders' own middleware, none reaching the stack; the bench says so and judges nothing of
+    it. A flood that did go out but below its target rate fails the run."""
+    from exit_decision.ros.stack.flood import FloodRun, Phase, report
+
+    def run_of(phase: Phase) -> FloodRun:
+        run = FloodRun(state_rate=100.0, subscribers={phase.topic: []}, phases=[phase])
+        for step in range(40):   # as long waits in the flood as without it
+            key = (1, step)
+            run.decision_steps[key], run.decided_at[key] = 0.004, (5.0 if step < 20 else 25.0) + step % 20 * 0.1
+        return run
+    unsent = Phase(CLOCK_TOPIC, 'oversized', 1000.0, refused=3000, window=(0.0, 10.0), quiet=(20.0, 30.0))
+    text, ok = report(run_of(unsent))
+    assert ok and 'not applicable' in text and 'every one of 3000' in text, text
+    slow = Phase(CLOCK_TOPIC, 'stale', 1000.0, sent=9000, rate=900.0, window=(0.0, 10.0), quiet=(20.0, 30.0))
+    text, ok = report(run_of(slow))
+    assert not ok and '900 msg/s (0.0 MB/s) BELOW the target 1000' in text and '1.00x ok' in text, text

@@ -297,18 +297,23 @@ def test_visualizer_sends_the_last_frame_its_rate_limit_held_back(tmp_path):
 
 def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_and_draws_on(tmp_path):
     """A states message of another episode, one whose lane the road does not have, and one
-    out of step order are each refused whole: the next good one is drawn as if they never came."""
-    from exit_decision_msgs.msg import VehicleStateArray
+    out of step order are each refused whole, and so are commands of another episode: the next
+    good states are drawn as if they never came."""
+    from builtin_interfaces.msg import Time
+    from exit_decision_msgs.msg import CavCommandArray, VehicleStateArray
     from visualization_msgs.msg import MarkerArray
 
+    from exit_decision.ros.messages.commands_cdr import encode_commands
+
     from exit_decision.ros.probe import ProbeNode
-    from exit_decision.ros.topics import MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
+    from exit_decision.ros.topics import COMMANDS_TOPIC, MARKERS_TOPIC, STATES_TOPIC, STREAM_QOS
     from exit_decision.ros.messages.conversions import states_to_msg
     from exit_decision.ros.stack.launcher import start_node
     from ros_helpers import stop
     from test_ros_stack import diagnostics_of
 
     test = ProbeNode('visualizer_reject_test')
+    commands = test.node.create_publisher(CavCommandArray, COMMANDS_TOPIC, STREAM_QOS)
     arrays = []
     test.node.create_subscription(MarkerArray, MARKERS_TOPIC, arrays.append, STREAM_QOS)
     counters = diagnostics_of(test, 'visualizer')
@@ -325,11 +330,13 @@ def test_visualizer_rejects_and_counts_states_that_cannot_follow_or_do_not_fit_a
         for episode, at, vehicles in ((1000, step + 1, snapshot()[:1]), (0, step + 1, bad_lane),
                                       (0, step, snapshot()[:2])):
             publisher.publish(states_to_msg(vehicles, episode=episode, step=at, step_length=STEP))
+        commands.publish(encode_commands({}, episode=1000, step=step, stamp=Time(), mode='AGGI', algorithm='gqn',
+                                         policy='p'))
         publisher.publish(states_to_msg(snapshot()[:4], episode=0, step=step + 1, step_length=STEP))
         assert test.spin_until(lambda: len(arrays) > drawn, 10)
-        assert test.spin_until(lambda: (
-            counters.get('rejected_out_of_sequence_states', 0) - before.get('rejected_out_of_sequence_states', 0),
-            counters.get('rejected_states', 0) - before.get('rejected_states', 0)) == (2, 1), 10), (before, counters)
+        assert test.spin_until(lambda: tuple(counters.get(key, 0) - before.get(key, 0) for key in (
+            'rejected_out_of_sequence_states', 'rejected_states', 'dropped_cav_commands_out_of_sequence')) == (2, 1, 1),
+            10), (before, counters)
     finally:
         test.close()
         stop(node)

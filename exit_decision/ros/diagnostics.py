@@ -49,20 +49,21 @@ class Diagnostics:
     def count(self, key: str, amount: float = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + amount
 
-    def reject(self, key: str, what: str, reason: str, topic: str | None = None, cause: str = 'invalid') -> None:
-        """Count a rejected message under ``rejected_<key>`` and say why, at most once every
+    def reject(self, key: str, what: str, reason: str, topic: str | None = None, cause: str = 'invalid',
+               amount: int = 1) -> None:
+        """Count a rejected message (or ``amount`` alike) under ``rejected_<key>`` and say why, at most once every
         REJECT_LOG_PERIOD seconds per key (throttled here: rclpy's throttle inspects the caller's
         frame on every call, 0.37 ms, which made a flood of rejects cost more than the messages).
         A message of ``topic`` dropped whole is counted by ``cause`` too (``drop``)."""
-        self.count(f'rejected_{key}')
+        self.count(f'rejected_{key}', amount)
         if topic is not None:
-            self.count(drop_key(topic, cause))
+            self.count(drop_key(topic, cause), amount)
         self.log_rejected(key, what, reason)
 
-    def drop(self, topic: str, cause: str, what: str, reason: str) -> None:
-        """Count a message of ``topic`` dropped for ``cause`` (one of ``CAUSES``) under
-        ``dropped_<topic>_<cause>`` and say why (throttled as ``reject``)."""
-        self.count(drop_key(topic, cause))
+    def drop(self, topic: str, cause: str, what: str, reason: str, amount: int = 1) -> None:
+        """Count a message of ``topic`` (or ``amount`` alike) dropped for ``cause`` (one of ``CAUSES``)
+        under ``dropped_<topic>_<cause>`` and say why (throttled as ``reject``)."""
+        self.count(drop_key(topic, cause), amount)
         self.log_rejected(f'{topic} {cause}', what, reason)
 
     def log_rejected(self, key: str, what: str, reason: str) -> None:

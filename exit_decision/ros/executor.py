@@ -27,7 +27,7 @@ from rclpy.subscription import Subscription  # noqa: E402
 
 from exit_decision.config import ConfigError  # noqa: E402
 from exit_decision.errors import ParameterError, PolicyError  # noqa: E402
-from exit_decision.ros.take import SerializedTake  # noqa: E402
+from exit_decision.ros.take import MESSAGE_WAITING, QUEUE_EMPTY, UNBOUNDED, SerializedTake  # noqa: E402
 
 
 class TakenByTheWaiter(CallbackGroup):
@@ -57,35 +57,43 @@ def emptied_at(subscription) -> int:
     return _emptied.get(subscription, -1)
 
 
-def _take_typed(subscription, size_limit: int | None = None):
-    """rclpy's take: the decoded message and its info, or None (a typed message has no size to limit)."""
-    return subscription.handle.take_message(subscription.msg_type, subscription.raw)
-
-
 def take_waiting(subscription, limit: int | None = None) -> int:
     """Hand the messages waiting in the queue of ``subscription`` (all, or at most ``limit``) to
-    its callback now, without the executor, and say how many (a flood on the topic costs each
-    message its decoding, or its header read, and the check that refuses it). A raw
-    subscription's messages are taken with their publisher's gid (``take.SerializedTake``); one
-    over the ``size_limit`` its callback carries (``intake.Intake`` gives it one) reaches the
-    callback as a ``take.Unread``, its length only: not copied out of the middleware's buffer."""
+    its callback now, without the executor, and say how many were taken. A raw subscription's
+    messages are taken with their publisher's gid, in C (``take.SerializedTake``): the bounds an
+    ``intake.Intake`` subscription carries on its callback (``intake.Bounded``: a size limit, a
+    window of steps) drop what they refuse there, counted by them, so a flood of such messages
+    costs each no Python; the rest reach the callback one by one."""
     with_info = subscription._callback_type is Subscription.CallbackType.WithMessageInfo   # as rclpy's executor calls it
-    size_limit = getattr(subscription.callback, 'size_limit', None)
-    take = _take_typed
-    if subscription.raw:
-        if not hasattr(_takes, 'take'):
-            _takes.take = SerializedTake()
-        take = _takes.take
-    taken, began = 0, time.time_ns()
+    callback, taken, began = subscription.callback, 0, time.time_ns()
     try:
         with subscription.handle:
+            if not subscription.raw:
+                while limit is None or taken < limit:
+                    message = subscription.handle.take_message(subscription.msg_type, False)
+                    if message is None:
+                        _emptied[subscription] = began
+                        break
+                    callback(*(message if with_info else message[:1]))
+                    taken += 1
+                return taken
+            if not hasattr(_takes, 'take'):
+                _takes.take = SerializedTake()
+            take, bounds = _takes.take, getattr(callback, 'bounds', UNBOUNDED)
             while limit is None or taken < limit:
-                message = take(subscription, size_limit)
-                if message is None:
+                # the window asked again each time: a callback may have moved it
+                status, dropped = take.drain(subscription, bounds.size_limit, bounds.window(),
+                                             limit - taken if limit else 0)
+                if dropped:
+                    bounds.dropped(take.records(dropped), dropped)
+                    taken += dropped
+                if status == QUEUE_EMPTY:
                     _emptied[subscription] = began
                     break
-                subscription.callback(*(message if with_info else message[:1]))
-                taken += 1
+                if status == MESSAGE_WAITING:
+                    message = take.waiting()
+                    callback(*(message if with_info else message[:1]))
+                    taken += 1
     except InvalidHandle:   # destroyed (by an earlier callback of this pass)
         pass
     return taken

@@ -1,18 +1,22 @@
-"""Taking a serialized message with the id of its publisher (rcl's ``rcl_take_serialized_message``).
+"""Taking serialized messages with the id of their publisher (rcl's ``rcl_take_serialized_message``),
+and dropping those a node would refuse unread before they reach Python (``_drain.c``).
 
 rclpy's take gives a message's info without the publisher's gid (Jazzy's dict holds the two
 timestamps and the two sequence numbers only), so with several publishers on a topic a node
 could not tell whose sequence a number belongs to, and the messages a full queue overwrote
-went uncounted. rcl's own take fills the whole ``rmw_message_info_t``, gid included; this module
-calls it through ctypes on the subscription rclpy made (its ``handle.pointer``), on the libraries
-rclpy has loaded already. The structures mirror rmw/types.h and rcutils/types/uint8_array.h of
-Jazzy (``RMW_GID_STORAGE_SIZE`` 16); a test takes through it and checks each field against
-rclpy's own take.
+went uncounted. rcl's own take fills the whole ``rmw_message_info_t``, gid included. This module
+finds it through ctypes on the libraries rclpy has loaded already, and ``_drain.c`` calls it in
+a loop on the subscription rclpy made (its ``handle.pointer``), into the structures here, which
+mirror rmw/types.h and rcutils/types/uint8_array.h of Jazzy (``RMW_GID_STORAGE_SIZE`` 16); a test
+takes through it and checks each field against rclpy's own take.
 """
 from __future__ import annotations
 
 import ctypes
 import importlib
+import struct
+
+from exit_decision.ros._drain import drain
 
 RCL_RET_OK = 0
 RMW_GID_STORAGE_SIZE = 16
@@ -52,53 +56,76 @@ def _load() -> tuple:
         rcutils.rcutils_uint8_array_init.argtypes = [ctypes.POINTER(_SerializedMessage), ctypes.c_size_t,
                                                      ctypes.POINTER(_Allocator)]
         rcutils.rcutils_uint8_array_init.restype = ctypes.c_int
-        rcl.rcl_take_serialized_message.argtypes = [ctypes.c_void_p, ctypes.POINTER(_SerializedMessage),
-                                                    ctypes.POINTER(_MessageInfo), ctypes.c_void_p]
-        rcl.rcl_take_serialized_message.restype = ctypes.c_int32
         _libraries = rcutils, rcl
     return _libraries
 
 
-class Unread:
-    """A message taken over its size limit and not copied out of the middleware's buffer: its
-    length (``len``) is all that is known of it."""
+#: a record of a message ``_drain.c`` dropped: publisher gid, sequence number, cause, then its
+#: length (TOO_LARGE) or its episode and step (OUT_OF_WINDOW)
+RECORD = struct.Struct('<16sQBII')
+TOO_LARGE, OUT_OF_WINDOW = 1, 2
+QUEUE_EMPTY, MESSAGE_WAITING, RECORDS_FULL = 0, 1, 2     # what ``drain`` stopped at
+RECORDS = 256            # dropped messages a drain call records at most
+NO_LIMIT = 2 ** 64 - 1   # [bytes] a subscription outside the intake: every message reaches Python
+LAST_STEP = 2 ** 32 - 1  # the largest step a header holds (uint32): a window up to it takes any step
 
-    __slots__ = ('length',)
 
-    def __init__(self, length: int):
-        self.length = length
+class Bounds:
+    """What a subscription lets through to Python (``SerializedTake.drain``): here, every message;
+    ``intake.Bounded`` sets a size limit and a window of steps, and counts what they drop."""
 
-    def __len__(self) -> int:
-        return self.length
+    size_limit = NO_LIMIT
+
+    def window(self) -> tuple[int, int, int] | None:
+        """(episode, first step, last step) of the messages the subscriber can take now; None: any."""
+        return None
+
+    def dropped(self, records, count: int) -> None:
+        """Count the ``count`` messages ``drain`` dropped (``SerializedTake.records``): none here."""
+
+
+UNBOUNDED = Bounds()
 
 
 class SerializedTake:
-    """Takes the serialized messages of rclpy subscriptions with their publisher's gid; one
-    buffer, kept and grown by the middleware, copied into ``bytes`` per message within its
-    size limit."""
+    """Takes the serialized messages of rclpy subscriptions with their publisher's gid, in C
+    (``_drain.c``): those a subscription's bounds refuse (over its size limit, outside its step
+    window) are dropped there and recorded; the others wait, one at a time, in one buffer (kept
+    and grown by the middleware) until ``waiting`` copies them out."""
 
     def __init__(self):
-        rcutils, self._rcl = _load()
+        rcutils, rcl = _load()
         self._allocator = rcutils.rcutils_get_default_allocator()
         self._message, self._info = _SerializedMessage(), _MessageInfo()
         if rcutils.rcutils_uint8_array_init(ctypes.byref(self._message), INITIAL_CAPACITY,
                                             ctypes.byref(self._allocator)) != RCL_RET_OK:
             raise MemoryError('rcutils could not allocate a serialized message buffer')
-        # made once: a flood costs every message a take, and an empty queue one more
-        self._take = self._rcl.rcl_take_serialized_message
-        self._message_ref, self._info_ref = ctypes.byref(self._message), ctypes.byref(self._info)
+        self._addresses = (ctypes.cast(rcl.rcl_take_serialized_message, ctypes.c_void_p).value,
+                           ctypes.addressof(self._message), ctypes.addressof(self._info))
+        self._records = bytearray(RECORD.size * RECORDS)
 
-    def __call__(self, subscription, size_limit: int | None = None) -> tuple[bytes | Unread, dict] | None:
-        """The next message waiting on ``subscription`` (the caller holds its handle) and its info
-        (rclpy's keys and ``publisher_gid``, 16 bytes), or None when none waits. A message over
-        ``size_limit`` bytes is an ``Unread``: a flood of large ones costs no copy of each."""
-        if self._take(subscription.handle.pointer, self._message_ref, self._info_ref, None) != RCL_RET_OK:
-            return None
+    def drain(self, subscription, size_limit: int = NO_LIMIT, window: tuple[int, int, int] | None = None,
+              most: int = 0) -> tuple[int, int]:
+        """Take messages of ``subscription`` (the caller holds its handle) until one is within
+        ``size_limit`` and inside ``window`` ((episode, first step, last step); its header read
+        where it has one), the queue is empty (``QUEUE_EMPTY``) or ``RECORDS`` or ``most`` (0: no
+        limit) messages were taken (``RECORDS_FULL``): that status, and how many were dropped
+        (``records``). After ``MESSAGE_WAITING`` the message is ``waiting``."""
+        take, message, info = self._addresses
+        episode, first, last = window or (-1, 0, 0)
+        return drain(take, subscription.handle.pointer, message, info, size_limit, episode, first, last,
+                     self._records, most)
+
+    def records(self, count: int):
+        """(gid, sequence number, cause, length or episode, 0 or step) of the ``count`` messages
+        the last ``drain`` dropped."""
+        return RECORD.iter_unpack(memoryview(self._records)[:count * RECORD.size])
+
+    def waiting(self) -> tuple[bytes, dict]:
+        """The message a ``drain`` left waiting, copied, and its info (rclpy's keys and
+        ``publisher_gid``, 16 bytes)."""
         message, info = self._message, self._info
-        length = message.buffer_length
-        data = Unread(length) if size_limit is not None and length > size_limit else \
-            ctypes.string_at(message.buffer, length)
-        return data, {
+        return ctypes.string_at(message.buffer, message.buffer_length), {
             'source_timestamp': info.source_timestamp, 'received_timestamp': info.received_timestamp,
             'publication_sequence_number': info.publication_sequence_number,
             'reception_sequence_number': info.reception_sequence_number,

@@ -104,7 +104,8 @@ class SumoBridge(Node):
         # its one subscription: its wait for commands takes this queue only, and nothing else the
         # process could be sent (other topics) reaches it
         self.commands = Intake.of_config(self, self.diagnostics, self.config).subscribe(
-            CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS, raw=True)
+            CavCommandArray, COMMANDS_TOPIC, self.on_commands, COMMANDS_QOS, raw=True,
+            window=self.command_window, refuse=self.refuse_commands)
         self.episode = 0
         self.published_step = -1            # step of the newest published states
         self.awaiting: int | None = None    # synchronous: the step whose commands are waited for
@@ -121,26 +122,37 @@ class SumoBridge(Node):
 
     # --- commands -----------------------------------------------------------------------------
 
+    def command_window(self) -> tuple[int, int, int]:
+        """(episode, first step, last step) of the commands that can answer now: synchronous, the
+        step waited for (none when not waiting); realtime, a step after the last accepted up to
+        the newest published."""
+        if self.timing == 'synchronous':
+            return (self.episode, self.awaiting, self.awaiting) if self.awaiting is not None else (self.episode, 1, 0)
+        return self.episode, self.last_command_step + 1, self.published_step
+
+    def refuse_commands(self, episode: int, step: int, amount: int = 1) -> None:
+        """Reject and count (``rejected_stale_commands``, out of sequence) ``amount`` command messages
+        outside ``command_window``, said with the reason of the one of (``episode``, ``step``)."""
+        _, first, last = self.command_window()
+        if episode != self.episode:
+            reason = f'episode {episode} is not the current episode {self.episode}'
+        elif self.timing == 'realtime':
+            reason = f'step {step} is not in {first}..{last}'
+        else:
+            reason = f'step {step}: waiting for step {first}' if first <= last else f'step {step}: not waiting for commands'
+        self.diagnostics.reject('stale_commands', 'commands', reason, COMMANDS_TOPIC, 'out_of_sequence', amount)
+
     def on_commands(self, raw: bytes) -> None:
         """Accept (checked, clamped) the commands that can answer now; reject the rest whole:
-        first one that cannot answer now, read from its header alone (a flood of stale commands
-        costs a header's read each), then a message with a bad field. Decoded from the CDR bytes
-        (``commands_cdr``): the bridge waits on it."""
+        first one that cannot answer now (``command_window``, read from its header alone: the
+        intake drops most of those before they reach Python), then a message with a bad field.
+        Decoded from the CDR bytes (``commands_cdr``): the bridge waits on it."""
         peeked = self.diagnostics.step_of(raw, 'command_messages', COMMANDS_TOPIC)
         if peeked is None:
             return
-        episode, step = peeked
-        if episode != self.episode:
-            reason = f'episode {episode} is not the current episode {self.episode}'
-        elif self.timing == 'synchronous':
-            reason = None if step == self.awaiting else (
-                f'step {step}: waiting for step {self.awaiting}' if self.awaiting is not None
-                else f'step {step}: not waiting for commands')
-        else:
-            reason = None if self.last_command_step < step <= self.published_step else (
-                f'step {step} is not in {self.last_command_step + 1}..{self.published_step}')
-        if reason:
-            self.diagnostics.reject('stale_commands', 'commands', reason, COMMANDS_TOPIC, 'out_of_sequence')
+        episode, first, last = self.command_window()
+        if peeked[0] != episode or not first <= peeked[1] <= last:
+            self.refuse_commands(*peeked)
             return
         what, cause = 'commands', 'undecodable'
         try:

@@ -37,6 +37,7 @@ from exit_decision.ros.diagnostics import Diagnostics
 from exit_decision.ros.executor import run_node
 from exit_decision.ros.intake import Intake
 from exit_decision.ros.parameters import declare, declare_config, declare_cpu_affinity, describe, follow
+from exit_decision.ros.take import LAST_STEP
 from exit_decision.ros.topics import (COMMANDS_TOPIC, DIAGNOSTICS_TOPIC, EPISODE_TOPIC, EVENT_QOS, GRAPH_TOPIC,
                                       MARKERS_TOPIC, OPTIONS_TOPIC, OVERRIDES_TOPIC, STATES_QOS, STATES_TOPIC,
                                       STREAM_QOS)
@@ -120,7 +121,9 @@ class Visualizer(Node):
                 (ShieldOverrideArray, OVERRIDES_TOPIC, 'shield_overrides', 'shield overrides',
                  lambda msg: frames.shield(overrides_from_msg(msg), msg.step)),
                 (CavOptionArray, OPTIONS_TOPIC, 'options', 'options', lambda msg: frames.options(options_from_msg(msg)))):
-            intake.subscribe(kind, topic, self.of_this_episode(topic, counter, what, use), STREAM_QOS)
+            refuse = self.other_episode(topic, what)
+            intake.subscribe(kind, topic, self.of_this_episode(topic, counter, what, use, refuse), STREAM_QOS,
+                             window=self.episode_window, refuse=refuse)
         intake.subscribe(DiagnosticArray, DIAGNOSTICS_TOPIC, self.on_diagnostics, STREAM_QOS)
 
     def on_states(self, raw: bytes) -> None:
@@ -174,15 +177,28 @@ class Visualizer(Node):
         frame, stamp = self.last
         self.send(dataclasses.replace(frame, crashed=(), collisions=self.frames.end(msg.p_collision)), stamp)
 
-    def of_this_episode(self, topic: str, counter: str, what: str,
-                        use: Callable[[object], None]) -> Callable[[object], None]:
+    def episode_window(self) -> tuple[int, int, int] | None:
+        """The episode drawn, any step (None before the first): the intake drops a message of
+        another episode on its header, before it is decoded (``Intake.subscribe``)."""
+        episode = self.frames.episode
+        return None if episode is None else (episode, 0, LAST_STEP)
+
+    def other_episode(self, topic: str, what: str) -> Callable[[int, int, int], None]:
+        """The refusal of ``amount`` messages of ``topic`` of another episode than the one drawn
+        (``out_of_sequence``), said with the episode of one of them."""
+        def refuse(episode: int, step: int, amount: int = 1) -> None:
+            self.diagnostics.drop(topic, 'out_of_sequence', f'{what} of episode {episode}',
+                                  f'not the episode drawn, {self.frames.episode}', amount)
+        return refuse
+
+    def of_this_episode(self, topic: str, counter: str, what: str, use: Callable[[object], None],
+                        refuse: Callable[[int, int, int], None]) -> Callable[[object], None]:
         """A subscription's callback: ``use(msg)`` for a message of the episode drawn; one of
-        another episode is dropped (``out_of_sequence``), one that does not fit the scenario is
+        another episode is refused (``other_episode``), one that does not fit the scenario is
         counted under ``counter`` (``invalid``); neither changes anything."""
         def callback(msg) -> None:
             if msg.episode != self.frames.episode:
-                self.diagnostics.drop(topic, 'out_of_sequence', f'{what} of episode {msg.episode}',
-                                      f'not the episode drawn, {self.frames.episode}')
+                refuse(msg.episode, msg.step)
                 return
             try:
                 use(msg)

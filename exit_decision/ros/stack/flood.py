@@ -252,6 +252,13 @@ def flood(phase: Phase, limit: int, config, flooders: int, subscribers: int, sec
     phase.rate = sum(report['sent'] / max(report['end'] - report['start'], 1e-9) for report in reports)
 
 
+def unsendable(phase: Phase) -> bool:
+    """Whether no message of the flood could be sent at all: the flooders' middleware refused every
+    one (an oversized flood of a bounded type, /clock's: Fast DDS sends no sample over the type's
+    size). Such a flood cannot happen, so it has no rate or wait to judge."""
+    return phase.sent == 0 and phase.refused > 0 and not phase.error
+
+
 def report(run: FloodRun) -> tuple[str, bool]:
     """The figures of a run, and whether it met every target."""
     ok = True
@@ -272,6 +279,10 @@ def report(run: FloodRun) -> tuple[str, bool]:
                float(np.percentile(quiet_waits, 99)) if len(quiet_waits) else math.nan)
         ratio = p99[0] / p99[1] if p99[1] else math.nan
         missing = run.uncounted(phase)
+        if unsendable(phase):
+            lines.append(f'  {phase.topic} {phase.kind}: not applicable: the flooders\' middleware refused to send '
+                         f'every one of {phase.refused} (a bounded type: none of its messages is over its limit)')
+            continue
         if phase.error:
             ok = False
             lines.append(f'  {phase.topic} {phase.kind}: FAILED, {phase.error}')
