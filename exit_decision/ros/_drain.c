@@ -33,7 +33,7 @@ typedef struct {
 } message_info_t;
 typedef int32_t (*take_t)(const void *subscription, serialized_t *message, message_info_t *info, void *allocation);
 
-enum { QUEUE_EMPTY = 0, MESSAGE_WAITING = 1, RECORDS_FULL = 2 };
+enum { QUEUE_EMPTY = 0, MESSAGE_WAITING = 1, MORE_MAY_WAIT = 2 };
 enum { TOO_LARGE = 1, OUT_OF_WINDOW = 2 };
 /* one record, little endian, no padding: gid (16), sequence number (8), cause (1), two uint32:
  * the length (too large) or the episode and the step (out of the window) */
@@ -79,7 +79,7 @@ PyDoc_STRVAR(drain_doc,
 "(a writable buffer) is full or ``most`` (0: no limit) were taken; drop those over ``size_limit``\n"
 "and, with ``episode`` >= 0, those whose (episode, step) is outside (episode, first..last step).\n"
 "Returns (status, records written): 0 the queue is empty, 1 a message waits in the buffer,\n"
-"2 ``records`` is full or ``most`` were taken.");
+"2 ``records`` is full or ``most`` were taken (more may wait).");
 
 static PyObject *drain(PyObject *module, PyObject *args) {
     unsigned long long take_address, subscription, message_address, info_address;
@@ -94,7 +94,7 @@ static PyObject *drain(PyObject *module, PyObject *args) {
     serialized_t *message = (serialized_t *)(uintptr_t)message_address;
     message_info_t *info = (message_info_t *)(uintptr_t)info_address;
     Py_ssize_t capacity = records.len / RECORD_BYTES, written = 0, taken = 0;
-    int status = RECORDS_FULL;
+    int status = MORE_MAY_WAIT;
     while (written < capacity && (most == 0 || taken < most)) {
         if (take((const void *)(uintptr_t)subscription, message, info, NULL) != 0) {
             status = QUEUE_EMPTY;

@@ -127,6 +127,8 @@ class Intake:
         no header to tell: ``refuse`` (episode, step, how many) is told of those outside it, the
         node's count and reason. Every message taken is counted (``received_<topic>``), before
         any check (``Bounded``)."""
+        if (window is None) != (refuse is None):
+            raise ValueError(f'{topic}: a window of steps needs a refusal for what is outside it, and only then')
         bounds = Bounded(topic, self.limit(topic), self.diagnostics, window, refuse)
         diagnostics = self.diagnostics
 

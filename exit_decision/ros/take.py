@@ -64,7 +64,7 @@ def _load() -> tuple:
 #: length (TOO_LARGE) or its episode and step (OUT_OF_WINDOW)
 RECORD = struct.Struct('<16sQBII')
 TOO_LARGE, OUT_OF_WINDOW = 1, 2
-QUEUE_EMPTY, MESSAGE_WAITING, RECORDS_FULL = 0, 1, 2     # what ``drain`` stopped at
+QUEUE_EMPTY, MESSAGE_WAITING, MORE_MAY_WAIT = 0, 1, 2     # what ``drain`` stopped at
 RECORDS = 256            # dropped messages a drain call records at most
 NO_LIMIT = 2 ** 64 - 1   # [bytes] a subscription outside the intake: every message reaches Python
 LAST_STEP = 2 ** 32 - 1  # the largest step a header holds (uint32): a window up to it takes any step
@@ -108,8 +108,8 @@ class SerializedTake:
               most: int = 0) -> tuple[int, int]:
         """Take messages of ``subscription`` (the caller holds its handle) until one is within
         ``size_limit`` and inside ``window`` ((episode, first step, last step); its header read
-        where it has one), the queue is empty (``QUEUE_EMPTY``) or ``RECORDS`` or ``most`` (0: no
-        limit) messages were taken (``RECORDS_FULL``): that status, and how many were dropped
+        where it has one), the queue is empty (``QUEUE_EMPTY``) or ``RECORDS`` dropped or ``most``
+        (0: no limit) taken (``MORE_MAY_WAIT``): that status, and how many were dropped
         (``records``). After ``MESSAGE_WAITING`` the message is ``waiting``."""
         take, message, info = self._addresses
         episode, first, last = window or (-1, 0, 0)
