@@ -3,8 +3,8 @@
 #   1. pip install -r requirements.txt            (stamp: hash of requirements.txt)
 #   2. build + install msg_defs into the venv     (stamp: hash of msg_defs/)
 #   3. install this ament_python package the colcon way into the venv prefix
-#      (executables in .venv/lib/exit_decision, share/exit_decision, ament index marker), and
-#      build its C extension (exit_decision/ros/_drain.c) in place too, for the checkout's imports
+#      (executables in .venv/lib/exit_decision, share/exit_decision, ament index marker)
+#   4. its C extension (exit_decision/ros/_drain.c) built in the checkout too, for its imports
 # The venv is an ament prefix: a .pth file sets AMENT_PREFIX_PATH to it when unset, so
 # nothing needs sourcing.
 set -euo pipefail
@@ -67,11 +67,18 @@ if _stage_needed package "$h"; then
       install --prefix "$VENV" --record "$build/install_manifest.txt" \
       --single-version-externally-managed --install-scripts "$VENV/lib/exit_decision" \
       > "$build/install.log" 2>&1 || { cat "$build/install.log"; exit 1; }
-    "$PY" setup.py --quiet build_ext --inplace --build-temp "$build/inplace" \
-      > "$build/inplace.log" 2>&1 || { cat "$build/inplace.log"; exit 1; }
   )
   ln -sf "$VENV/lib/exit_decision/exit-decision" "$VENV/bin/exit-decision"
   _stage_done package "$h"
+fi
+# the C extension in the checkout too, for its imports (the tests, `python -m exit_decision`)
+if _stage_needed inplace "$h" || ! compgen -G "$ROOT/exit_decision/ros/_drain.*.so" > /dev/null; then
+  _log "building the C extension in place"
+  build="$VENV/build/exit_decision_inplace"
+  mkdir -p "$build"
+  (cd "$ROOT" && "$PY" setup.py --quiet build_ext --inplace --build-temp "$build" > "$build/build.log" 2>&1) \
+    || { cat "$build/build.log"; exit 1; }
+  _stage_done inplace "$h"
 fi
 
 export PATH="$VENV/bin:$PATH"
