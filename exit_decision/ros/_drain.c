@@ -94,7 +94,13 @@ static PyObject *drain(PyObject *module, PyObject *args) {
     serialized_t *message = (serialized_t *)(uintptr_t)message_address;
     message_info_t *info = (message_info_t *)(uintptr_t)info_address;
     Py_ssize_t capacity = records.len / RECORD_BYTES, written = 0, taken = 0;
+    if (capacity == 0) {
+        PyBuffer_Release(&records);
+        PyErr_SetString(PyExc_ValueError, "records: room for no record");
+        return NULL;
+    }
     int status = MORE_MAY_WAIT;
+    Py_BEGIN_ALLOW_THREADS   /* rcl's take and plain bytes from here on: other threads may run */
     while (written < capacity && (most == 0 || taken < most)) {
         if (take((const void *)(uintptr_t)subscription, message, info, NULL) != 0) {
             status = QUEUE_EMPTY;
@@ -118,6 +124,7 @@ static PyObject *drain(PyObject *module, PyObject *args) {
         status = MESSAGE_WAITING;
         break;
     }
+    Py_END_ALLOW_THREADS
     PyBuffer_Release(&records);
     return Py_BuildValue("in", status, written);
 }
