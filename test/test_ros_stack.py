@@ -858,6 +858,33 @@ def test_the_bridges_live_parameters_change_what_it_does_at_once(setup, tmp_path
     assert ended == list(range(len(ended))) and 'all episodes done' in (tmp_path / 'bridge.log').read_text()
 
 
+def test_a_realtime_bridge_applies_the_decision_nodes_commands(setup, tmp_path):
+    """In realtime timing (what `ros2 launch ... timing:=realtime` runs) the bridge steps on the
+    clock and applies the commands the decision node sends for the steps it published (its
+    window: after the last accepted, up to the newest published): over one episode, commands
+    applied and none refused as stale."""
+    config_dir = setup['config_dir']
+    test = ProbeNode('realtime_commands_test')
+    counters = diagnostics_of(test, 'sumo_bridge')
+    ended = []
+    test.node.create_subscription(EpisodeEvent, EPISODE_TOPIC, lambda m: ended.append(m)
+                                  if m.event == EpisodeEvent.EVENT_ENDED else None, EVENT_QOS)
+    nodes = [start_node('graph_and_decision', {'config_dir': config_dir, 'policy_dir': setup['policies']},
+                        tmp_path / 'graph_and_decision.log'),
+             start_node('sumo_bridge', {'config_dir': config_dir, 'timing': 'realtime', 'realtime_factor': 20.0,
+                                        'episodes': 1, 'wait_for_subscribers': 1}, tmp_path / 'bridge.log')]
+    try:
+        assert test.spin_until(lambda: ended, 180), 'the episode ends'
+        assert nodes[1].wait(30) == 0
+        test.spin_until(lambda: False, 1.0)
+    finally:
+        test.close()
+        for process in nodes:
+            stop(process)
+    assert counters.get('applied_commands', 0) > 0 and counters.get('received_cav_commands', 0) > 0, counters
+    assert counters.get('rejected_stale_commands', 0) == 0, counters
+
+
 def test_a_new_command_timeout_applies_from_the_next_step(setup, tmp_path):
     """A synchronous bridge whose commands never come waits a ``command_timeout`` at each decision
     step: 2 s, then, set through set_parameters while it waits, 0.05 s from the next one on."""
