@@ -138,6 +138,19 @@ static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_drain", "Draining a subscription's queue in C (take.py).", -1, methods,
 };
 
+/* the statuses, causes and record size, for take.py: defined here only */
 PyMODINIT_FUNC PyInit__drain(void) {
-    return PyModule_Create(&module);
+    PyObject *made = PyModule_Create(&module);
+    if (made == NULL)
+        return NULL;
+    if (PyModule_AddIntConstant(made, "QUEUE_EMPTY", QUEUE_EMPTY) < 0
+            || PyModule_AddIntConstant(made, "MESSAGE_WAITING", MESSAGE_WAITING) < 0
+            || PyModule_AddIntConstant(made, "MORE_MAY_WAIT", MORE_MAY_WAIT) < 0
+            || PyModule_AddIntConstant(made, "TOO_LARGE", TOO_LARGE) < 0
+            || PyModule_AddIntConstant(made, "OUT_OF_WINDOW", OUT_OF_WINDOW) < 0
+            || PyModule_AddIntConstant(made, "RECORD_BYTES", RECORD_BYTES) < 0) {
+        Py_DECREF(made);
+        return NULL;
+    }
+    return made;
 }

@@ -16,7 +16,7 @@ import ctypes
 import importlib
 import struct
 
-from exit_decision.ros._drain import drain
+from exit_decision.ros import _drain
 
 RCL_RET_OK = 0
 RMW_GID_STORAGE_SIZE = 16
@@ -60,11 +60,15 @@ def _load() -> tuple:
     return _libraries
 
 
+#: what ``drain`` stopped at, and why it dropped a message: ``_drain.c``'s own values
+QUEUE_EMPTY, MESSAGE_WAITING, MORE_MAY_WAIT = _drain.QUEUE_EMPTY, _drain.MESSAGE_WAITING, _drain.MORE_MAY_WAIT
+TOO_LARGE, OUT_OF_WINDOW = _drain.TOO_LARGE, _drain.OUT_OF_WINDOW
 #: a record of a message ``_drain.c`` dropped: publisher gid, sequence number, cause, then its
 #: length (TOO_LARGE) or its episode and step (OUT_OF_WINDOW)
 RECORD = struct.Struct('<16sQBII')
-TOO_LARGE, OUT_OF_WINDOW = 1, 2
-QUEUE_EMPTY, MESSAGE_WAITING, MORE_MAY_WAIT = 0, 1, 2     # what ``drain`` stopped at
+if RECORD.size != _drain.RECORD_BYTES:
+    raise ImportError(f'exit_decision.ros._drain writes {_drain.RECORD_BYTES}-byte records, take.py reads '
+                      f'{RECORD.size}: rebuild it (scripts/bootstrap.sh, or colcon build)')
 RECORDS = 256            # dropped messages a drain call records at most
 NO_LIMIT = 2 ** 64 - 1   # [bytes] a subscription outside the intake: every message reaches Python
 LAST_STEP = 2 ** 32 - 1  # the largest step a header holds (uint32): a window up to it takes any step
@@ -113,7 +117,7 @@ class SerializedTake:
         (``records``). After ``MESSAGE_WAITING`` the message is ``waiting``."""
         take, message, info = self._addresses
         episode, first, last = window or (-1, 0, 0)
-        return drain(take, subscription.handle.pointer, message, info, size_limit, episode, first, last,
+        return _drain.drain(take, subscription.handle.pointer, message, info, size_limit, episode, first, last,
                      self._records, most)
 
     def records(self, count: int):
